@@ -1,0 +1,39 @@
+# Set-up and checks. `make test` and `make demo` are self-sufficient on a fresh machine.
+PY     ?= $(shell command -v python3.11 || command -v python3)
+VENV   := .venv
+BIN    := $(VENV)/bin
+PYTEST_ARGS ?=
+
+.PHONY: setup setup-test demo test test-full bench docs clean
+
+setup: $(VENV)/.stamp-run
+
+setup-test: $(VENV)/.stamp-test
+
+$(BIN)/python:
+	$(PY) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+
+$(VENV)/.stamp-run: $(BIN)/python requirements.lock pyproject.toml
+	$(BIN)/pip install -q -r requirements.lock
+	$(BIN)/pip install -q --no-deps --no-build-isolation -e .
+	touch $@
+
+$(VENV)/.stamp-test: $(VENV)/.stamp-run requirements-test.lock
+	$(BIN)/pip install -q -r requirements-test.lock
+	touch $@
+
+demo: setup
+	$(BIN)/pmsm-agent demo
+
+test: setup-test
+	$(BIN)/python -m pytest -q $(PYTEST_ARGS)
+
+test-full: setup-test
+	PMSM_SLOW=full $(BIN)/python -m pytest -q $(PYTEST_ARGS)
+
+bench: setup-test
+	$(BIN)/python -m bench.run
+
+clean:
+	rm -rf $(VENV) .pytest_cache build *.egg-info
