@@ -1,0 +1,180 @@
+"""Healthy baseline (paper Algs. 2-4): model, residual-spectrum thresholds, parameter cluster.
+
+* Alg. 2: identify each healthy record, average the parameters (median with ``robust=True``).
+* Alg. 3: residual of phase a (measured minus free-run model current), windowed amplitude
+  spectrum, per-bin centre and spread over the m records; TH2 = centre + 2 spread,
+  TH3 = centre + 3 spread. Centre/spread are mean/standard deviation, or median/1.4826 MAD with
+  ``robust=True`` so that one outlier record cannot hide a fault.
+* Alg. 4: per record the point (Ts/Lq, B_GT); the healthy region is an ellipse of Mahalanobis
+  distance at ``confidence`` (default 95 %). ``region="prediction"`` (default) uses the Hotelling
+  prediction ellipse, which accounts for estimating the centre and covariance from m records;
+  ``region="chi2"`` uses the chi-square quantile as the paper's large-sample approximation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.stats
+
+from agent.frames import dq_to_abc
+from agent.identify import PREFILTER_HZ, FitResult, constrain, fit_record, record_signals
+from agent.model import DQModel, Signals
+from agent.profile import DriveProfile
+from agent.records import Record
+from agent.spectrum import amplitude_spectrum
+
+WINDOW_S = 2.0  #: residual-spectrum window, s (0.5 Hz resolution)
+F_MAX_HZ = 1000.0  #: highest frequency kept in the thresholds, Hz
+MAD_SCALE = 1.4826  #: MAD -> standard deviation for normal data
+
+
+def residual_phase_a(model: DQModel, sig: Signals) -> np.ndarray:
+    """Phase-a residual current r_a = i_a - i_a_model (A), free-run model (Alg. 3 lines 4-6)."""
+    r_dq = sig.i_dq - model.simulate(sig)
+    return dq_to_abc(r_dq, sig.theta_e)[0]
+
+
+def window_spectrum(x: np.ndarray, rate_hz: float, window_s: float = WINDOW_S,
+                    f_max_hz: float = F_MAX_HZ) -> tuple[np.ndarray, np.ndarray]:
+    """Amplitude spectrum of ``x`` averaged over consecutive windows of ``window_s`` s, up to ``f_max_hz``."""
+    n_w = int(round(window_s * rate_hz))
+    n_seg = x.size // n_w
+    if n_seg < 1:
+        raise ValueError(f"{x.size} samples are fewer than one window of {n_w}")
+    freqs, amp = amplitude_spectrum(x[: n_seg * n_w].reshape(n_seg, n_w), rate_hz)
+    keep = freqs <= f_max_hz
+    return freqs[keep], amp[:, keep].mean(axis=0)
+
+
+def centre_spread(values: np.ndarray, robust: bool, axis: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and sample standard deviation, or median and scaled MAD, along ``axis``."""
+    if robust:
+        med = np.median(values, axis=axis)
+        return med, MAD_SCALE * np.median(np.abs(values - np.expand_dims(med, axis)), axis=axis)
+    return values.mean(axis=axis), values.std(axis=axis, ddof=1)
+
+
+@dataclass
+class Thresholds:
+    """Per-bin residual-spectrum statistics (Alg. 3)."""
+
+    freqs_hz: np.ndarray
+    centre: np.ndarray
+    spread: np.ndarray
+    window_s: float = WINDOW_S
+    robust: bool = False
+
+    @property
+    def th2(self) -> np.ndarray:
+        return self.centre + 2.0 * self.spread
+
+    @property
+    def th3(self) -> np.ndarray:
+        return self.centre + 3.0 * self.spread
+
+
+@dataclass
+class Cluster:
+    """Healthy region of the (Ts/Lq, B_GT) parameter cluster (Alg. 4)."""
+
+    points: np.ndarray  #: (m, 2) healthy points
+    centre: np.ndarray
+    cov: np.ndarray
+    limit: float  #: squared Mahalanobis distance at the region's edge
+    confidence: float = 0.95
+    region: str = "prediction"
+
+    def distance2(self, point) -> float:
+        """Squared Mahalanobis distance of ``point`` from the healthy centre."""
+        d = np.asarray(point, dtype=float) - self.centre
+        return float(d @ np.linalg.solve(self.cov, d))
+
+    @classmethod
+    def fit(cls, points: np.ndarray, confidence: float = 0.95, region: str = "prediction",
+            robust: bool = False) -> "Cluster":
+        m, p = points.shape
+        if m <= p + 1:
+            raise ValueError(f"need at least {p + 2} records for the parameter cluster, got {m}")
+        centre, cov = points.mean(axis=0), np.cov(points, rowvar=False)
+        if robust:  # one reweighting step from median/MAD: drop points far outside, refit
+            med, mad = centre_spread(points, robust=True)
+            z2 = np.sum(((points - med) / np.where(mad > 0, mad, 1.0)) ** 2, axis=1)
+            inliers = points[z2 <= scipy.stats.chi2.ppf(0.975, p)]
+            if len(inliers) > p + 1:
+                centre, cov = inliers.mean(axis=0), np.cov(inliers, rowvar=False)
+        cov = cov + np.eye(p) * 1e-12 * np.trace(cov)
+        if region == "chi2":
+            limit = scipy.stats.chi2.ppf(confidence, p)
+        elif region == "prediction":
+            limit = p * (m - 1) * (m + 1) / (m * (m - p)) * scipy.stats.f.ppf(confidence, p, m - p)
+        else:
+            raise ValueError(f"unknown cluster region {region!r} (prediction, chi2)")
+        return cls(points, centre, cov, float(limit), confidence, region)
+
+
+@dataclass
+class Baseline:
+    """Everything learned from healthy records at one operating point."""
+
+    profile: DriveProfile
+    model: DQModel
+    thresholds: Thresholds
+    cluster: Cluster
+    operating_point: dict
+    records: list[str] = field(default_factory=list)
+    settings: dict = field(default_factory=dict)
+    history: list[dict] = field(default_factory=list)
+
+
+def identify_baseline(records: list[Record], profile: DriveProfile, *, form: str = "lumped",
+                      robust: bool = False, window_s: float = WINDOW_S, confidence: float = 0.95,
+                      region: str = "prediction", prefilter_hz: float | None = PREFILTER_HZ,
+                      progress=None) -> Baseline:
+    """Algs. 2-4 on m healthy records; ``progress(i, m, text)`` is called per step when given."""
+    m = len(records)
+    if m < 4:
+        raise ValueError(f"need at least 4 healthy records, got {m}")
+    sigs, fits = [], []
+    for j, rec in enumerate(records):
+        if progress:
+            progress(j, 2 * m, f"identify {rec.source}")
+        sig = record_signals(rec, profile)
+        sigs.append(sig)
+        fits.append(fit_record(sig, profile, form, prefilter_hz=prefilter_hz))
+    model = average_model(fits, robust)
+    spectra = []
+    for j, (rec, sig) in enumerate(zip(records, sigs)):
+        if progress:
+            progress(m + j, 2 * m, f"residual spectrum {rec.source}")
+        freqs, amp = window_spectrum(residual_phase_a(model, sig), profile.sampling.rate_hz, window_s)
+        spectra.append(amp)
+    centre, spread = centre_spread(np.array(spectra), robust)
+    op_all = np.array([[f.operating_point["fe_hz"], f.operating_point["load_pct"]] for f in fits])
+    op = dict(zip(("fe_hz", "load_pct"), np.median(op_all, axis=0).tolist()))
+    op.update(fe_spread_hz=float(np.ptp(op_all[:, 0])), load_spread_pct=float(np.ptp(op_all[:, 1])))
+    return Baseline(
+        profile=profile, model=model,
+        thresholds=Thresholds(freqs, centre, spread, window_s, robust),
+        cluster=Cluster.fit(np.array([f.cluster_point for f in fits]), confidence, region, robust),
+        operating_point=op, records=[r.source for r in records],
+        settings={"form": form, "robust": robust, "window_s": window_s, "prefilter_hz": prefilter_hz,
+                  "confidence": confidence, "region": region,
+                  "constrained_records": sum(f.constrained for f in fits)},
+    )
+
+
+def average_model(fits: list[FitResult], robust: bool = False) -> DQModel:
+    """Alg. 2 line 10: the mean (or median) of the per-record parameters, kept plausible."""
+    agg = np.median if robust else np.mean
+    first = fits[0].model
+    fe = float(agg([f.model.fe_hz for f in fits]))
+    model = DQModel(first.form, first.ts, agg([f.model.theta_d for f in fits], axis=0),
+                    agg([f.model.theta_q for f in fits], axis=0), first.extra_d, first.extra_q, fe_hz=fe)
+    ok, reason = model.is_plausible()
+    if not ok:
+        pooled = FitResult(model, np.zeros(2), sum(f.info_d for f in fits), sum(f.info_q for f in fits))
+        constrain(pooled)
+        model.meta["constrained"] = reason
+    return model

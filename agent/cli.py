@@ -1,0 +1,232 @@
+"""The ``pmsm-agent`` command line (CONTRACT section 2).
+
+Every subcommand takes ``--json`` (exactly one JSON object on stdout; logs on stderr). Exit
+status: 0 success, 2 bad usage or bad input (one line naming the file/key/column), 1 internal
+failure.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from agent.errors import InputError
+
+log = logging.getLogger("pmsm-agent")
+
+
+# --- helpers --------------------------------------------------------------------------------
+
+def _emit(args, doc: dict, human: str) -> None:
+    if args.json:
+        json.dump(doc, sys.stdout, default=_json_default)
+        sys.stdout.write("\n")
+    else:
+        print(human)
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def _progress(i: int, n: int, text: str) -> None:
+    log.info("[%d/%d] %s", i + 1, n, text)
+
+
+def _load_records(paths, profile, min_samples: int = 0):
+    from agent.records import load_record
+
+    return [load_record(p, profile, min_samples=min_samples) for p in paths]
+
+
+def _parse_effects(items: list[str] | None) -> dict[str, float | None]:
+    effects: dict[str, float | None] = {}
+    for item in items or []:
+        name, _, value = item.partition("=")
+        try:
+            effects[name.strip()] = float(value) if value else None
+        except ValueError:
+            raise InputError(f"--effect {item!r}: the value after '=' must be a number") from None
+    return effects
+
+
+# --- subcommands -----------------------------------------------------------------------------
+
+def cmd_simulate(args) -> None:
+    from agent.profile import load_profile
+    from agent.records import save_record
+    from agent.simulator import simulate
+
+    profile = load_profile(args.profile)
+    if args.seconds <= 0:
+        raise InputError(f"--seconds must be positive, got {args.seconds}")
+    if not 0 <= args.load <= 150:
+        raise InputError(f"--load must be within 0..150 %, got {args.load}")
+    out = Path(args.out)
+    written, samples = [], 0
+    for j in range(args.count):
+        seed = args.seed + j
+        rec = simulate(profile, condition=args.condition, load_pct=args.load, seconds=args.seconds, seed=seed,
+                       effects=_parse_effects(args.effect), encoder=args.encoder, severity=args.severity)
+        path = out if args.count == 1 else out.with_name(f"{out.stem}_{seed:04d}{out.suffix}")
+        save_record(rec, path)
+        written.append(str(path))
+        samples = rec.n
+    doc = {"out": written[0] if args.count == 1 else written, "samples": samples,
+           "condition": args.condition, "load_pct": args.load, "seed": args.seed}
+    _emit(args, doc, "\n".join(f"wrote {p} ({samples} samples)" for p in written))
+
+
+def cmd_frequencies(args) -> None:
+    from agent.frequencies import base_frequencies, fault_frequencies
+    from agent.profile import load_profile
+
+    profile = load_profile(args.profile)
+    fe = profile.rated_fe_hz if args.fe is None else args.fe
+    fam = fault_frequencies(profile, fe, args.k)
+    doc = {"profile": profile.name, "fe_hz": fe, "base_hz": base_frequencies(profile, fe), "families": fam}
+    lines = [f"fe = {fe:g} Hz"]
+    for name, items in fam.items():
+        lines.append(f"{name:>13}: " + ", ".join(f"{p['freq_hz']:.2f}" for p in items) + " Hz")
+    _emit(args, doc, "\n".join(lines))
+
+
+def cmd_identify(args) -> None:
+    from agent.baseline import identify_baseline
+    from agent.modelfile import save_baseline
+    from agent.profile import load_profile
+
+    profile = load_profile(args.profile)
+    recs = _load_records(args.data, profile, min_samples=int(args.window * profile.sampling.rate_hz) + 2)
+    t0 = time.perf_counter()
+    base = identify_baseline(recs, profile, form=args.form, robust=args.robust, window_s=args.window,
+                             confidence=args.confidence, region=args.region, progress=_progress)
+    save_baseline(base, args.out)
+    m = base.model
+    names_d, names_q = (tuple(t.name for t in ts) for ts in m.terms)
+    params = {"d": dict(zip(names_d, m.theta_d.tolist())), "q": dict(zip(names_q, m.theta_q.tolist())),
+              "physical": m.physical(), "ts_over_lq": float(m.theta_q[2]),
+              "b_gt": float(base.cluster.centre[1]), "constrained": base.model.meta.get("constrained", False)}
+    doc = {"model": str(args.out), "records": len(recs), "params": params,
+           "operating_point": {k: base.operating_point[k] for k in ("fe_hz", "load_pct")},
+           "cluster": {"centre": base.cluster.centre, "limit": base.cluster.limit, "region": base.cluster.region},
+           "seconds": round(time.perf_counter() - t0, 3)}
+    ph = params["physical"]
+    _emit(args, doc, (
+        f"baseline from {len(recs)} records -> {args.out}\n"
+        f"operating point: fe {doc['operating_point']['fe_hz']:.2f} Hz, load {doc['operating_point']['load_pct']:.1f} %\n"
+        f"physical: Rs {ph['Rs_q']:.3f} ohm, Ld {ph['Ld'] * 1e3:.2f} mH, Lq {ph['Lq'] * 1e3:.2f} mH, "
+        f"psi_m {ph['psi_m']:.4f} Wb\n"
+        f"cluster centre: Ts/Lq {params['ts_over_lq']:.4e}, B_GT {params['b_gt']:.5f} N m s/rad"))
+
+
+def cmd_diagnose(args) -> None:
+    from agent.decision import diagnose
+    from agent.modelfile import load_baseline
+
+    base = load_baseline(args.model)
+    recs = _load_records(args.data, base.profile,
+                         min_samples=int(base.thresholds.window_s * base.profile.sampling.rate_hz) + 2)
+    results = [diagnose(base, r).to_json() for r in recs]
+    lines = []
+    for r in results:
+        peaks = ", ".join(f"{p['freq_hz']:.1f} Hz {p['family']} k={p['k']} {p['level']}" for p in r["peaks"])
+        lines.append(f"{r['record']}: {r['state'].upper()} (spectrum {r['spectrum_state']}, cluster "
+                     f"{r['cluster_state']}, d2 {r['cluster']['distance2']:.1f}/{r['cluster']['limit']:.1f})"
+                     + (f"\n    peaks: {peaks}" if peaks else "")
+                     + "".join(f"\n    note: {n}" for n in r["notes"]))
+    _emit(args, {"model": str(args.model), "results": results}, "\n".join(lines))
+
+
+def cmd_demo(args) -> None:
+    from agent.demo import run_offline_demo
+
+    transitions = run_offline_demo(seconds=args.seconds, say=lambda s: print(s, file=sys.stderr if args.json else sys.stdout, flush=True))
+    if args.json:
+        json.dump({"transitions": transitions}, sys.stdout, default=_json_default)
+        sys.stdout.write("\n")
+
+
+# --- parser ----------------------------------------------------------------------------------
+
+def build_parser() -> argparse.ArgumentParser:
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
+    common.add_argument("-v", "--verbose", action="store_true", help="log progress to stderr")
+
+    p = argparse.ArgumentParser(prog="pmsm-agent", description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    s = sub.add_parser("simulate", parents=[common], help="write a record from the rig simulator")
+    s.add_argument("--profile", required=True, help="drive profile TOML")
+    s.add_argument("--condition", default="healthy", help="healthy or a fault condition of the profile's transmission")
+    s.add_argument("--effect", action="append", metavar="ID[=VALUE]",
+                   help="add a physical effect (repeatable), e.g. inverter_deadtime=8")
+    s.add_argument("--load", type=float, default=80.0, help="load, %% of rated (default 80)")
+    s.add_argument("--seconds", type=float, default=4.0, help="record length, s (default 4)")
+    s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    s.add_argument("--count", type=int, default=1, help="write COUNT records with seeds SEED.. (suffix _SEED)")
+    s.add_argument("--severity", type=float, default=1.0, help="scale of the fault (default 1)")
+    s.add_argument("--encoder", action="store_true", help="include theta_e/omega_e columns (drive encoder)")
+    s.add_argument("--out", required=True, help="output record (.csv, .npz or .tdms)")
+    s.set_defaults(func=cmd_simulate)
+
+    s = sub.add_parser("frequencies", parents=[common], help="fault characteristic frequencies (eqs. 19-22)")
+    s.add_argument("--profile", required=True)
+    s.add_argument("--fe", type=float, help="electrical frequency, Hz (default: rated speed)")
+    s.add_argument("--k", type=int, default=3, help="sideband orders 1..K (default 3)")
+    s.set_defaults(func=cmd_frequencies)
+
+    s = sub.add_parser("identify", parents=[common], help="learn a healthy baseline from records (Algs. 2-4)")
+    s.add_argument("--profile", required=True)
+    s.add_argument("--out", required=True, help="model file to write (JSON)")
+    s.add_argument("--form", choices=("lumped", "speed"), default="lumped",
+                   help="regression form: paper eqs. 13-14 (lumped) or omega_e as a regressor (speed)")
+    s.add_argument("--robust", action="store_true", help="median/MAD instead of mean/std")
+    s.add_argument("--window", type=float, default=2.0, help="residual-spectrum window, s (default 2)")
+    s.add_argument("--confidence", type=float, default=0.95, help="parameter-cluster region (default 0.95)")
+    s.add_argument("--region", choices=("prediction", "chi2"), default="prediction",
+                   help="cluster region: Hotelling prediction ellipse (default) or chi-square")
+    s.add_argument("data", nargs="+", help="healthy records")
+    s.set_defaults(func=cmd_identify)
+
+    s = sub.add_parser("diagnose", parents=[common], help="normal / caution / warning for each record")
+    s.add_argument("--model", required=True)
+    s.add_argument("data", nargs="+")
+    s.set_defaults(func=cmd_diagnose)
+
+    s = sub.add_parser("demo", parents=[common], help="the embedded demo (simulated drive, healthy then faulty)")
+    s.add_argument("--seconds", type=float, default=60.0, help="wall-time limit, s (default 60)")
+    s.set_defaults(func=cmd_demo)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, stream=sys.stderr,
+                        format="%(levelname)s %(name)s: %(message)s")
+    try:
+        args.func(args)
+    except InputError as err:
+        print(f"pmsm-agent {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    except Exception:  # a bug: say so, with the traceback, and exit 1
+        log.exception("internal error")
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,98 @@
+"""FDI decision (paper Table 4): residual-spectrum levels at the fault frequencies and the
+parameter-cluster distance, combined into normal / caution / warning.
+
+* spectrum: a fault line above TH3 is a warning, above TH2 a caution; the spectrum state is the
+  worst line.
+* cluster: outside the healthy region (Mahalanobis distance beyond the region's limit) is a warning.
+* overall: the worse of the two.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from agent.baseline import Baseline, residual_phase_a, window_spectrum
+from agent.frequencies import fault_frequencies
+from agent.identify import fit_record, record_signals
+from agent.records import Record
+from agent.spectrum import peak_near
+
+STATES = ("normal", "caution", "warning")  #: codes 0 / 1 / 2
+K_MAX = 3  #: sideband orders checked per family
+#: Relative distance of a record's operating point from the model's that earns a warning note.
+FE_TOLERANCE, LOAD_TOLERANCE_PCT = 0.02, 5.0
+
+
+def worst(*states: str) -> str:
+    return max(states, key=STATES.index)
+
+
+@dataclass
+class Diagnosis:
+    record: str
+    state: str
+    spectrum_state: str
+    cluster_state: str
+    peaks: list[dict]
+    cluster: dict
+    operating_point: dict
+    notes: list[str] = field(default_factory=list)
+
+    def to_json(self) -> dict:
+        return {"record": self.record, "state": self.state, "spectrum_state": self.spectrum_state,
+                "cluster_state": self.cluster_state, "peaks": self.peaks, "cluster": self.cluster,
+                "operating_point": self.operating_point, "notes": self.notes}
+
+
+def spectrum_peaks(baseline: Baseline, freqs: np.ndarray, amp: np.ndarray, fe_hz: float) -> list[dict]:
+    """Every fault line (family, k, both sidebands) with its magnitude, thresholds and level."""
+    th = baseline.thresholds
+    th2, th3 = th.th2, th.th3
+    peaks = []
+    for family, lines in fault_frequencies(baseline.profile, fe_hz, K_MAX).items():
+        for line in lines:
+            if line["freq_hz"] > freqs[-1]:
+                continue
+            idx, f, mag = peak_near(freqs, amp, line["freq_hz"])
+            level = "warning" if mag > th3[idx] else "caution" if mag > th2[idx] else "normal"
+            peaks.append({"freq_hz": round(f, 4), "family": family, "k": line["k"], "level": level,
+                          "magnitude": mag, "th2": float(th2[idx]), "th3": float(th3[idx]),
+                          "target_hz": round(line["freq_hz"], 4)})
+    return peaks
+
+
+def diagnose(baseline: Baseline, record: Record) -> Diagnosis:
+    """Table 4 decision for one record against a healthy baseline."""
+    profile = baseline.profile
+    sig = record_signals(record, profile)
+    fit = fit_record(sig, profile, baseline.model.form, (baseline.model.extra_d, baseline.model.extra_q),
+                     prefilter_hz=baseline.settings.get("prefilter_hz"))
+    op = fit.operating_point
+    freqs, amp = window_spectrum(residual_phase_a(baseline.model, sig), profile.sampling.rate_hz,
+                                 baseline.thresholds.window_s, baseline.thresholds.freqs_hz[-1])
+    peaks = spectrum_peaks(baseline, freqs, amp, op["fe_hz"])
+    flagged = [p for p in peaks if p["level"] != "normal"]
+    spectrum_state = worst("normal", *(p["level"] for p in flagged))
+    point = fit.cluster_point
+    d2 = baseline.cluster.distance2(point)
+    cluster_state = "warning" if d2 > baseline.cluster.limit else "normal"
+    notes = operating_point_notes(baseline.operating_point, op)
+    return Diagnosis(
+        record=record.source, state=worst(spectrum_state, cluster_state), spectrum_state=spectrum_state,
+        cluster_state=cluster_state, peaks=flagged,
+        cluster={"ts_over_lq": float(point[0]), "b_gt": float(point[1]), "distance2": d2,
+                 "limit": baseline.cluster.limit, "confidence": baseline.cluster.confidence},
+        operating_point=op, notes=notes)
+
+
+def operating_point_notes(model_op: dict, op: dict) -> list[str]:
+    """Warnings when a record's operating point is far from the one the baseline was learned at."""
+    notes = []
+    if abs(op["fe_hz"] - model_op["fe_hz"]) > FE_TOLERANCE * model_op["fe_hz"]:
+        notes.append(f"operating point: fe {op['fe_hz']:.2f} Hz is far from the model's {model_op['fe_hz']:.2f} Hz")
+    if abs(op["load_pct"] - model_op["load_pct"]) > LOAD_TOLERANCE_PCT:
+        notes.append(f"operating point: load {op['load_pct']:.1f} % is far from the model's "
+                     f"{model_op['load_pct']:.1f} %")
+    return notes

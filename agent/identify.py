@@ -1,0 +1,142 @@
+"""Parameter identification of one record (paper Alg. 1 applied to eqs. 13-15).
+
+Steps: angle and speed (the record's ``theta_e``/``omega_e`` or the PLL), dq signals, regressors,
+a low-pass *prefilter* applied identically to every regressor column and to the output, then
+streaming RLS (exact batch least squares for ``lam = 1``).
+
+Why the prefilter: the current regressors carry white measurement noise, which biases least squares
+(errors in variables) badly on steady-state data where the true current ripple is small. Filtering
+both sides of a linear-in-parameters equation with the same linear filter keeps the equation exact
+while removing the noise above the band where the drive's dynamics live. ``prefilter_hz=None``
+gives the paper's unfiltered estimate.
+
+If the estimate is not physically plausible (non-positive R, L, psi_m or an unstable free-run),
+it is replaced by the closest plausible one in the metric of the RLS information matrix
+(a bounded fit over Rs, Ld, Lq, psi_m), and ``FitResult.constrained`` says so.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.optimize
+import scipy.signal
+
+from agent.model import BASE_TERMS, DQModel, Signals, Term, lumped_params, regressors, torque_regression
+from agent.pll import track
+from agent.profile import DriveProfile
+from agent.records import Record
+from agent.rls import StreamingRLS
+
+PREFILTER_HZ = 1000.0  #: default prefilter cut-off, Hz (4th-order Butterworth)
+PREFILTER_ORDER = 4
+
+
+def record_signals(record: Record, profile: DriveProfile) -> Signals:
+    """dq signals of a record: angle/speed from its columns when present, else from the PLL on the currents."""
+    rate = profile.sampling.rate_hz
+    if record.theta_e is not None:
+        theta = np.unwrap(record.theta_e)
+        omega = record.omega_e if record.omega_e is not None else np.gradient(theta) * rate
+    else:
+        theta, omega = track(record.i_abc, rate, profile.rated_fe_hz)
+    return Signals.from_abc(record.v_abc, record.i_abc, theta, omega, 1.0 / rate)
+
+
+def operating_point(sig: Signals, profile: DriveProfile) -> dict[str, float]:
+    """Electrical frequency (Hz) and load (% of rated power, from eq. 10's P_in) of a record."""
+    p_in = float(np.mean(np.einsum("ij,ij->j", sig.v_abc, sig.i_abc)))
+    return {"fe_hz": float(np.mean(sig.omega_e) / (2 * np.pi)),
+            "load_pct": 100.0 * p_in / profile.motor.rated_power_w}
+
+
+@dataclass
+class FitResult:
+    """Identified parameters of one record."""
+
+    model: DQModel
+    theta_torque: np.ndarray  #: [K_GT (N m/rad), B_GT (N m s/rad)], eq. 15
+    info_d: np.ndarray  #: RLS information matrices (inverse covariance), for constrained fits
+    info_q: np.ndarray
+    constrained: bool = False
+    reason: str = "ok"
+    operating_point: dict = field(default_factory=dict)
+
+    @property
+    def cluster_point(self) -> np.ndarray:
+        """(Ts/Lq, B_GT): the paper's parameter-cluster coordinates (Alg. 4)."""
+        return np.array([self.model.theta_q[2], self.theta_torque[1]])
+
+
+def prefilter(columns: np.ndarray, rate_hz: float, cutoff_hz: float | None) -> np.ndarray:
+    """Low-pass every column (N, m) with the same Butterworth filter, started at the first row's value."""
+    if cutoff_hz is None:
+        return columns
+    sos = scipy.signal.butter(PREFILTER_ORDER, cutoff_hz, fs=rate_hz, output="sos")
+    zi = scipy.signal.sosfilt_zi(sos)[:, :, None] * columns[0][None, None, :]
+    return scipy.signal.sosfilt(sos, columns, axis=0, zi=zi)[0]
+
+
+def fit_axes(sig: Signals, terms: tuple[tuple[Term, ...], tuple[Term, ...]],
+             prefilter_hz: float | None = PREFILTER_HZ) -> list[StreamingRLS]:
+    """One RLS per axis on the (prefiltered) regression i_x(k+1) = X(k) theta_x."""
+    rate = 1.0 / sig.ts
+    out = []
+    for axis, axis_terms in enumerate(terms):
+        x = regressors(axis_terms, sig)[:-1]
+        both = prefilter(np.column_stack((x, sig.i_dq[axis, 1:])), rate, prefilter_hz)
+        rls = StreamingRLS(x.shape[1], lam=1.0, p0=1e6)
+        rls.update(both[:, :-1], both[:, -1])
+        out.append(rls)
+    return out
+
+
+def fit_record(sig: Signals, profile: DriveProfile, form: str = "lumped",
+               extra: tuple[tuple[Term, ...], tuple[Term, ...]] = ((), ()),
+               prefilter_hz: float | None = PREFILTER_HZ) -> FitResult:
+    """Identify the dq model (eqs. 13-14) and the torque model (eq. 15) of one record."""
+    base_d, base_q = BASE_TERMS[form]
+    rls_d, rls_q = fit_axes(sig, (base_d + extra[0], base_q + extra[1]), prefilter_hz)
+    op = operating_point(sig, profile)
+    model = DQModel(form, sig.ts, rls_d.theta, rls_q.theta, extra[0], extra[1], fe_hz=op["fe_hz"])
+    x_t, y_t = torque_regression(sig, profile.motor.pole_pairs, profile.torque_per_watt)
+    rls_t = StreamingRLS(2, lam=1.0, p0=1e6)
+    rls_t.update(x_t, y_t)
+    info_d, info_q = np.linalg.inv(rls_d.covariance), np.linalg.inv(rls_q.covariance)
+    fit = FitResult(model, rls_t.theta, info_d, info_q, operating_point=op)
+    ok, reason = model.is_plausible()
+    if not ok:
+        constrain(fit)
+        fit.constrained, fit.reason = True, reason
+    return fit
+
+
+def constrain(fit: FitResult) -> None:
+    """Replace the base parameters by the plausible (Rs, Ld, Lq, psi_m > 0) set closest to the
+    estimate in the information metric: min sum_axes (g(p) - theta)^T R (g(p) - theta)."""
+    model = fit.model
+    w = 2 * np.pi * model.fe_hz
+    nd, nq = len(BASE_TERMS[model.form][0]), len(BASE_TERMS[model.form][1])
+    target = np.concatenate((model.theta_d, model.theta_q))
+    chol_d, chol_q = _sqrt_info(fit.info_d), _sqrt_info(fit.info_q)
+    scale = np.array([1.0, 1e-2, 1e-2, 0.1])  # Rs ohm, Ld H, Lq H, psi_m Wb: typical magnitudes
+
+    def residual(z):
+        p = np.exp(z) * scale
+        g_d, g_q = lumped_params(model.form, model.ts, *p, w)
+        th_d = np.concatenate((g_d, model.theta_d[nd:]))
+        th_q = np.concatenate((g_q, model.theta_q[nq:]))
+        return np.concatenate((chol_d @ (th_d - target[: th_d.size]), chol_q @ (th_q - target[th_d.size:])))
+
+    phys = model.physical(w)
+    guess = [phys["Rs_q"], phys["Ld"], phys["Lq"], phys["psi_m"]]
+    z0 = np.log(np.clip(np.nan_to_num(guess, nan=1.0), 1e-6 * scale, None) / scale)
+    sol = scipy.optimize.least_squares(residual, z0, method="trf")
+    model.from_physical(*(np.exp(sol.x) * scale), omega_e=w)
+
+
+def _sqrt_info(info: np.ndarray) -> np.ndarray:
+    """W with W^T W = info (symmetric PSD), robust to near-singular matrices."""
+    e, v = np.linalg.eigh(0.5 * (info + info.T))
+    return np.sqrt(np.clip(e, 0.0, None))[:, None] * v.T

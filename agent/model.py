@@ -1,0 +1,232 @@
+"""The PMSM dq model (paper eqs. 5-6, 13-14) and the transmission torque model (eqs. 10-12, 15).
+
+A model is linear in its parameters. Each axis ``x`` in (d, q) predicts the next current
+
+    i_x(k+1) = sum_j theta_x[j] * column_j(k)
+
+where a column is either a *state* term (a dq current, optionally multiplied by omega_e(k)) or an
+*exogenous* term computed from measured signals (voltage, speed, effect regressors). The two forms:
+
+* ``lumped`` -- the paper's eqs. 13-14, omega_e folded into the parameters (one speed only):
+  d: [i_q, i_d, v_d] -> [w Lq Ts/Ld, 1 - Rs Ts/Ld, Ts/Ld]
+  q: [i_q, i_d, v_q, w] -> [1 - Rs Ts/Lq, -w Ld Ts/Lq, Ts/Lq, -psi_m Ts/Lq]
+* ``speed`` -- the same eq. 6 with omega_e(k) as a regressor (one set across speeds and transients):
+  d: [i_d, w i_q, v_d] -> [1 - Rs Ts/Ld, Lq Ts/Ld, Ts/Ld]
+  q: [i_q, w i_d, v_q, w] -> [1 - Rs Ts/Lq, -Ld Ts/Lq, Ts/Lq, -psi_m Ts/Lq]
+
+Because state terms are explicit, the same parameters give the one-step predictor and the
+free-run simulation x(k+1) = (A0 + omega_e(k) A1) x(k) + u(k), compiled with numba.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numba
+import numpy as np
+
+from agent.frames import abc_to_dq
+
+FORMS = ("lumped", "speed")
+
+
+@dataclass(frozen=True)
+class Signals:
+    """dq-frame signals of one record or window: currents (A), voltages (V), angle (rad), speed (rad/s)."""
+
+    i_dq: np.ndarray  #: (2, N) A
+    v_dq: np.ndarray  #: (2, N) V
+    theta_e: np.ndarray  #: (N,) rad, unwrapped
+    omega_e: np.ndarray  #: (N,) rad/s
+    ts: float  #: sampling period, s
+    i_abc: np.ndarray | None = None  #: (3, N) A, for effects that act per phase
+    v_abc: np.ndarray | None = None  #: (3, N) V
+
+    @property
+    def n(self) -> int:
+        return self.omega_e.size
+
+    @classmethod
+    def from_abc(cls, v_abc, i_abc, theta_e, omega_e, ts) -> "Signals":
+        theta_e = np.unwrap(np.asarray(theta_e, dtype=float))
+        i_dq, _ = abc_to_dq(i_abc, theta_e)
+        v_dq, _ = abc_to_dq(v_abc, theta_e)
+        return cls(i_dq, v_dq, theta_e, np.asarray(omega_e, dtype=float), ts, np.asarray(i_abc), np.asarray(v_abc))
+
+    def slice(self, start: int, stop: int) -> "Signals":
+        cut = slice(start, stop)
+        opt = lambda a: None if a is None else a[:, cut]  # noqa: E731
+        return Signals(self.i_dq[:, cut], self.v_dq[:, cut], self.theta_e[cut], self.omega_e[cut], self.ts,
+                       opt(self.i_abc), opt(self.v_abc))
+
+
+@dataclass(frozen=True)
+class Term:
+    """One regressor column. ``state`` = index of the dq current it multiplies (0 d, 1 q) or None for
+    an exogenous column given by ``exo(signals) -> (N,)``; ``speed`` multiplies by omega_e(k)."""
+
+    name: str
+    state: int | None = None
+    speed: bool = False
+    exo: Callable[[Signals], np.ndarray] | None = None
+
+    def column(self, sig: Signals) -> np.ndarray:
+        base = sig.i_dq[self.state] if self.state is not None else self.exo(sig)
+        return base * sig.omega_e if self.speed else base
+
+
+_V_D = Term("v_d", exo=lambda s: s.v_dq[0])
+_V_Q = Term("v_q", exo=lambda s: s.v_dq[1])
+_W = Term("w", exo=lambda s: s.omega_e)
+
+#: Base regressors of each form: (d-axis terms, q-axis terms), in the paper's column order.
+BASE_TERMS: dict[str, tuple[tuple[Term, ...], tuple[Term, ...]]] = {
+    "lumped": ((Term("i_q", 1), Term("i_d", 0), _V_D),
+               (Term("i_q", 1), Term("i_d", 0), _V_Q, _W)),
+    "speed": ((Term("i_d", 0), Term("w*i_q", 1, speed=True), _V_D),
+              (Term("i_q", 1), Term("w*i_d", 0, speed=True), _V_Q, _W)),
+}
+
+
+def regressors(terms: tuple[Term, ...], sig: Signals) -> np.ndarray:
+    """(N, n) regressor matrix of one axis; row k predicts the current at k+1."""
+    return np.column_stack([t.column(sig) for t in terms])
+
+
+@dataclass
+class DQModel:
+    """Identified discrete dq model (eq. 6) with its regression form and extra terms."""
+
+    form: str
+    ts: float
+    theta_d: np.ndarray
+    theta_q: np.ndarray
+    extra_d: tuple[Term, ...] = ()
+    extra_q: tuple[Term, ...] = ()
+    fe_hz: float = float("nan")  #: operating point the model was identified at
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def terms(self) -> tuple[tuple[Term, ...], tuple[Term, ...]]:
+        base_d, base_q = BASE_TERMS[self.form]
+        return base_d + self.extra_d, base_q + self.extra_q
+
+    def one_step(self, sig: Signals) -> np.ndarray:
+        """One-step-ahead prediction (2, N); sample 0 is the measurement."""
+        out = np.empty_like(sig.i_dq)
+        out[:, 0] = sig.i_dq[:, 0]
+        for axis, (terms, theta) in enumerate(zip(self.terms, (self.theta_d, self.theta_q))):
+            out[axis, 1:] = (regressors(terms, sig) @ theta)[:-1]
+        return out
+
+    def state_matrices(self) -> tuple[np.ndarray, np.ndarray]:
+        """(A0, A1): x(k+1) = (A0 + omega_e(k) A1) x(k) + u(k)."""
+        a0, a1 = np.zeros((2, 2)), np.zeros((2, 2))
+        for axis, (terms, theta) in enumerate(zip(self.terms, (self.theta_d, self.theta_q))):
+            for term, value in zip(terms, theta):
+                if term.state is not None:
+                    (a1 if term.speed else a0)[axis, term.state] += value
+        return a0, a1
+
+    def exogenous(self, sig: Signals) -> np.ndarray:
+        """u(k), (2, N): the sum of the exogenous columns times their parameters."""
+        u = np.zeros((2, sig.n))
+        for axis, (terms, theta) in enumerate(zip(self.terms, (self.theta_d, self.theta_q))):
+            for term, value in zip(terms, theta):
+                if term.state is None:
+                    u[axis] += value * term.column(sig)
+        return u
+
+    def simulate(self, sig: Signals, x0: np.ndarray | None = None) -> np.ndarray:
+        """Free-run simulation (2, N) driven by measured voltages and speed, from ``x0`` (default:
+        the first measured current). Diverging output is returned as is (inf/NaN)."""
+        a0, a1 = self.state_matrices()
+        x0 = sig.i_dq[:, 0] if x0 is None else np.asarray(x0, dtype=float)
+        return _simulate_ltv(a0, a1, np.ascontiguousarray(sig.omega_e), self.exogenous(sig), x0)
+
+    def spectral_radius(self, omega_e: float) -> float:
+        """Largest |eigenvalue| of the state matrix at speed ``omega_e`` (rad/s); < 1 means stable."""
+        a0, a1 = self.state_matrices()
+        return float(np.max(np.abs(np.linalg.eigvals(a0 + omega_e * a1))))
+
+    def physical(self, omega_e: float | None = None) -> dict[str, float]:
+        """Physical parameters recovered from the lumped ones (Rs ohm, Ld/Lq H, psi_m Wb).
+
+        d axis gives Ld, Rs and (lumped form: through omega_e) Lq; q axis gives Lq, Rs, Ld, psi_m.
+        ``omega_e`` (rad/s) defaults to the model's operating point; it is needed for the lumped form.
+        """
+        w = 2 * np.pi * self.fe_hz if omega_e is None else omega_e
+        ts = self.ts
+        if self.form == "lumped":
+            a_dq, a_dd, b_d = self.theta_d[:3]
+            a_qq, a_qd, b_q, c_q = self.theta_q[:4]
+            lq_d, ld_q = a_dq / (w * b_d), -a_qd / (w * b_q)
+        else:
+            a_dd, l_d, b_d = self.theta_d[:3]
+            a_qq, l_q, b_q, c_q = self.theta_q[:4]
+            lq_d, ld_q = l_d / b_d, -l_q / b_q
+        return {
+            "Rs_d": (1 - a_dd) / b_d, "Rs_q": (1 - a_qq) / b_q,
+            "Ld": ts / b_d, "Lq": ts / b_q, "Lq_from_d": lq_d, "Ld_from_q": ld_q,
+            "psi_m": -c_q / b_q, "Ts_over_Lq": b_q,
+        }
+
+    def is_plausible(self, omega_e: float | None = None) -> tuple[bool, str]:
+        """Positive R, L, psi_m and a stable free-run at ``omega_e`` (rad/s); returns (ok, reason)."""
+        w = 2 * np.pi * self.fe_hz if omega_e is None else omega_e
+        p = self.physical(w)
+        bad = [k for k in ("Rs_d", "Rs_q", "Ld", "Lq", "psi_m") if not (np.isfinite(p[k]) and p[k] > 0)]
+        if bad:
+            return False, "non-positive " + ", ".join(bad)
+        rho = self.spectral_radius(w)
+        if not rho < 1.0:
+            return False, f"unstable free-run (spectral radius {rho:.6f})"
+        return True, "ok"
+
+    def from_physical(self, rs: float, ld: float, lq: float, psi_m: float, omega_e: float | None = None) -> None:
+        """Set the base parameters from physical values (extra terms keep their parameters)."""
+        w = 2 * np.pi * self.fe_hz if omega_e is None else omega_e
+        self.theta_d = np.concatenate((lumped_params(self.form, self.ts, rs, ld, lq, psi_m, w)[0],
+                                       self.theta_d[3:]))
+        self.theta_q = np.concatenate((lumped_params(self.form, self.ts, rs, ld, lq, psi_m, w)[1],
+                                       self.theta_q[4:]))
+
+
+def lumped_params(form: str, ts: float, rs: float, ld: float, lq: float, psi_m: float,
+                  omega_e: float) -> tuple[np.ndarray, np.ndarray]:
+    """Base parameter vectors (d, q) of ``form`` from physical values (eq. 6, Euler)."""
+    if form == "lumped":
+        d = [omega_e * lq * ts / ld, 1 - rs * ts / ld, ts / ld]
+        q = [1 - rs * ts / lq, -omega_e * ld * ts / lq, ts / lq, -psi_m * ts / lq]
+    else:
+        d = [1 - rs * ts / ld, lq * ts / ld, ts / ld]
+        q = [1 - rs * ts / lq, -ld * ts / lq, ts / lq, -psi_m * ts / lq]
+    return np.array(d), np.array(q)
+
+
+@numba.njit(cache=True)
+def _simulate_ltv(a0, a1, omega, u, x0):
+    n = omega.size
+    x = np.empty((2, n))
+    x[0, 0], x[1, 0] = x0[0], x0[1]
+    for k in range(n - 1):
+        d, q, w = x[0, k], x[1, k], omega[k]
+        x[0, k + 1] = (a0[0, 0] + w * a1[0, 0]) * d + (a0[0, 1] + w * a1[0, 1]) * q + u[0, k]
+        x[1, k + 1] = (a0[1, 0] + w * a1[1, 0]) * d + (a0[1, 1] + w * a1[1, 1]) * q + u[1, k]
+    return x
+
+
+# --- transmission (eqs. 10-12, 15) -------------------------------------------------------------
+
+def input_power(v_abc: np.ndarray, i_abc: np.ndarray) -> np.ndarray:
+    """Instantaneous electrical input power P_in = v_a i_a + v_b i_b + v_c i_c, W."""
+    return np.einsum("ij,ij->j", v_abc, i_abc)
+
+
+def torque_regression(sig: Signals, pole_pairs: int, torque_per_watt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 15: X = [theta_m, omega_m] (N, 2), y = T_shaft (N,) with T_shaft = (T_rated/P_rated) P_in
+    (eq. 10) and theta_m = theta_e/p, omega_m = omega_e/p (eq. 12), theta_m from the record start."""
+    t_shaft = torque_per_watt * input_power(sig.v_abc, sig.i_abc)
+    theta_m = (sig.theta_e - sig.theta_e[0]) / pole_pairs
+    return np.column_stack((theta_m, sig.omega_e / pole_pairs)), t_shaft

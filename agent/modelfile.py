@@ -1,0 +1,114 @@
+"""Model files: a healthy baseline (model, thresholds, cluster, profile) as versioned JSON.
+
+Written atomically (temporary file, fsync, rename) so a crash never leaves half a model behind.
+A file that is not JSON, lacks a key, or has another format version is an ``InputError`` naming
+the file.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from agent.baseline import Baseline, Cluster, Thresholds
+from agent.errors import InputError
+from agent.model import DQModel
+from agent.profile import parse_profile
+
+FORMAT = "pmsm-agent-model"
+VERSION = 1
+
+
+def _arr(a) -> list:
+    return np.asarray(a, dtype=float).tolist()
+
+
+def baseline_to_json(b: Baseline) -> dict:
+    m, th, cl = b.model, b.thresholds, b.cluster
+    prof = asdict(b.profile)
+    name = prof.pop("name")
+    return {
+        "format": FORMAT, "version": VERSION,
+        "profile": {"name": name, **{k: {kk: vv for kk, vv in v.items() if vv is not None} for k, v in prof.items()}},
+        "operating_point": b.operating_point,
+        "model": {"form": m.form, "ts": m.ts, "fe_hz": m.fe_hz, "theta_d": _arr(m.theta_d),
+                  "theta_q": _arr(m.theta_q), "effects": m.meta.get("effects", []),
+                  "physical": m.physical(), "meta": {k: v for k, v in m.meta.items() if k != "effects"}},
+        "thresholds": {"freqs_hz": _arr(th.freqs_hz), "centre": _arr(th.centre), "spread": _arr(th.spread),
+                       "window_s": th.window_s, "robust": th.robust},
+        "cluster": {"points": _arr(cl.points), "centre": _arr(cl.centre), "cov": _arr(cl.cov),
+                    "limit": cl.limit, "confidence": cl.confidence, "region": cl.region},
+        "records": b.records, "settings": b.settings, "history": b.history,
+    }
+
+
+def baseline_from_json(doc: dict, source: str = "<model>") -> Baseline:
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+        raise InputError(f"not a {FORMAT} file", source=source)
+    if doc.get("version") != VERSION:
+        raise InputError(f"unsupported model version {doc.get('version')!r} (this build reads {VERSION})",
+                         source=source)
+    try:
+        m, th, cl = doc["model"], doc["thresholds"], doc["cluster"]
+        if m.get("effects"):
+            from agent.effects import model_terms  # the workbench's effect library
+            extra_d, extra_q = model_terms(m["effects"])
+        else:
+            extra_d, extra_q = (), ()
+        model = DQModel(m["form"], float(m["ts"]), np.array(m["theta_d"]), np.array(m["theta_q"]),
+                        extra_d, extra_q, fe_hz=float(m["fe_hz"]), meta={**m.get("meta", {}), "effects": m.get("effects", [])})
+        return Baseline(
+            profile=parse_profile(doc["profile"], source=source), model=model,
+            thresholds=Thresholds(np.array(th["freqs_hz"]), np.array(th["centre"]), np.array(th["spread"]),
+                                  float(th["window_s"]), bool(th["robust"])),
+            cluster=Cluster(np.array(cl["points"]), np.array(cl["centre"]), np.array(cl["cov"]),
+                            float(cl["limit"]), float(cl["confidence"]), cl["region"]),
+            operating_point=doc["operating_point"], records=list(doc.get("records", [])),
+            settings=dict(doc.get("settings", {})), history=list(doc.get("history", [])))
+    except InputError:
+        raise
+    except (KeyError, TypeError, ValueError) as err:
+        raise InputError(f"corrupt model file ({type(err).__name__}: {err})", source=source) from None
+
+
+def save_baseline(b: Baseline, path: str | Path) -> Path:
+    """Write ``b`` to ``path`` atomically."""
+    return write_atomic(path, json.dumps(baseline_to_json(b), indent=1).encode())
+
+
+def load_baseline(path: str | Path) -> Baseline:
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_bytes())
+    except FileNotFoundError:
+        raise InputError("no such model file", source=str(path)) from None
+    except (OSError, ValueError) as err:
+        raise InputError(f"corrupt model file ({err})", source=str(path)) from None
+    return baseline_from_json(doc, source=str(path))
+
+
+def write_atomic(path: str | Path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` via a temporary file in the same folder, fsync and rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    dir_fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(dir_fd)
+    finally:
+        os.close(dir_fd)
+    return path
