@@ -19,7 +19,7 @@ import numpy as np
 import scipy.stats
 
 from agent.frames import dq_to_abc
-from agent.identify import PREFILTER_HZ, FitResult, constrain, fit_record, record_signals
+from agent.identify import PREFILTER_HZ, FitResult, constrain, fit_record, record_signals, refine_output_error
 from agent.model import DQModel, Signals
 from agent.profile import DriveProfile
 from agent.records import Record
@@ -131,7 +131,7 @@ class Baseline:
 def identify_baseline(records: list[Record], profile: DriveProfile, *, form: str = "lumped",
                       robust: bool = False, window_s: float = WINDOW_S, confidence: float = 0.95,
                       region: str = "prediction", prefilter_hz: float | None = PREFILTER_HZ,
-                      progress=None) -> Baseline:
+                      refine: bool = True, progress=None) -> Baseline:
     """Algs. 2-4 on m healthy records; ``progress(i, m, text)`` is called per step when given."""
     m = len(records)
     if m < 4:
@@ -144,6 +144,8 @@ def identify_baseline(records: list[Record], profile: DriveProfile, *, form: str
         sigs.append(sig)
         fits.append(fit_record(sig, profile, form, prefilter_hz=prefilter_hz))
     model = average_model(fits, robust)
+    if refine:
+        model = refine_output_error(model, sigs)
     spectra = []
     for j, (rec, sig) in enumerate(zip(records, sigs)):
         if progress:
@@ -160,7 +162,7 @@ def identify_baseline(records: list[Record], profile: DriveProfile, *, form: str
         cluster=Cluster.fit(np.array([f.cluster_point for f in fits]), confidence, region, robust),
         operating_point=op, records=[r.source for r in records],
         settings={"form": form, "robust": robust, "window_s": window_s, "prefilter_hz": prefilter_hz,
-                  "confidence": confidence, "region": region,
+                  "confidence": confidence, "region": region, "refine": refine,
                   "constrained_records": sum(f.constrained for f in fits)},
     )
 

@@ -3,20 +3,45 @@
 A record is read from CSV, NPZ or TDMS into a :class:`Record`; every problem a user can fix
 (missing column, non-uniform time, NaN, sample rate that disagrees with the profile, too few
 samples) raises :class:`agent.errors.InputError` naming the file and the problem.
+
+Formats (channel names ``t, va, vb, vc, ia, ib, ic`` and optional ``theta_e, omega_e``):
+
+* ``.csv``: header row, comma separated, column order free, unknown columns ignored.
+* ``.npz``: one 1-D array per channel; ``meta`` as a JSON string under ``__meta__``.
+* ``.tdms``: one channel per name in one group (the only group, the group named by the root
+  property ``record_group``, or the only group holding the required channels); time from the
+  channels' ``wf_increment`` / ``wf_start_offset`` (a ``t`` channel is used only when they are
+  missing); ``meta`` as group properties.
 """
 
 from __future__ import annotations
 
+import csv
+import json
+import re
+import warnings
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
+
+from agent.errors import InputError
 
 #: Required channels, in the order of ``Record`` arrays.
 VOLTAGES = ("va", "vb", "vc")
 CURRENTS = ("ia", "ib", "ic")
 OPTIONAL = ("theta_e", "omega_e")
+REQUIRED = ("t", *VOLTAGES, *CURRENTS)
 #: Relative tolerance on the uniformity of the time column.
 TIME_TOLERANCE = 1e-6
+#: Relative tolerance between the record's sample rate and the profile's ``sampling.rate_hz``.
+RATE_TOLERANCE = 1e-6
+FORMATS = (".csv", ".npz", ".tdms")
+UNITS = {"t": "s", **dict.fromkeys(VOLTAGES, "V"), **dict.fromkeys(CURRENTS, "A"),
+         "theta_e": "rad", "omega_e": "rad/s"}
+META_KEY = "__meta__"  #: NPZ key of the JSON-encoded ``meta``
+GROUP_PROPERTY = "record_group"  #: TDMS root property naming the record's group
+TDMS_GROUP = "record"  #: group name used when writing TDMS
 
 
 @dataclass
@@ -44,8 +69,270 @@ class Record:
     @property
     def rate_hz(self) -> float:
         """Sample rate from the time column, Hz."""
-        return 1.0 / float(np.mean(np.diff(self.t))) if self.n > 1 else float("nan")
+        return (self.n - 1) / float(self.t[-1] - self.t[0]) if self.n > 1 else float("nan")
 
     @property
     def duration_s(self) -> float:
         return self.n / self.rate_hz
+
+    def channels(self) -> dict[str, np.ndarray]:
+        """Name -> ``(N,)`` array for ``t``, the six phase channels and the optional ones present."""
+        out = {"t": self.t, **dict(zip(VOLTAGES, self.v_abc)), **dict(zip(CURRENTS, self.i_abc))}
+        out.update({k: getattr(self, k) for k in OPTIONAL if getattr(self, k) is not None})
+        return out
+
+
+# ---------------------------------------------------------------------------------- public API
+
+
+def load_record(path: str | Path, profile=None, min_samples: int = 0) -> Record:
+    """Read and validate a ``.csv``, ``.npz`` or ``.tdms`` record (see :func:`validate_record`)."""
+    path = Path(path)
+    src = str(path)
+    reader = _READERS[_suffix(path)]
+    if not path.is_file():
+        raise InputError("no such record file", source=src)
+    columns, meta, found = reader(path, src)
+    return validate_record(_from_columns(columns, src, meta, found), profile, min_samples)
+
+
+def save_record(record: Record, path: str | Path) -> Path:
+    """Write ``record`` as ``.csv`` (no meta), ``.npz`` or ``.tdms``; returns the path."""
+    path = Path(path)
+    writer = _WRITERS[_suffix(path)]
+    try:
+        writer(record, path)
+    except OSError as err:
+        raise InputError(f"cannot write record: {err.strerror or err}", source=str(path)) from err
+    return path
+
+
+def validate_record(record: Record, profile=None, min_samples: int = 0) -> Record:
+    """Check at least ``min_samples`` (and 2) samples, finite values, uniform increasing time and
+    the sample rate against ``profile.sampling.rate_hz``.
+
+    Raises :class:`InputError` naming ``record.source``; returns ``record`` unchanged.
+    """
+    src, n = record.source, record.n
+    if n < min_samples:
+        raise InputError(f"too short for the window: {n} samples, need {min_samples}", source=src)
+    if n < 2:
+        raise InputError(f"need at least 2 samples to define a sample rate, got {n}", source=src)
+    for name, x in record.channels().items():
+        bad = ~np.isfinite(x)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise InputError(f"{'NaN' if np.isnan(x[i]) else 'inf'} in column '{name}' at sample {i}", source=src)
+    step = _uniform_step(record.t, src)
+    if profile is not None:
+        rate, want = 1.0 / step, float(profile.sampling.rate_hz)
+        if abs(rate - want) > RATE_TOLERANCE * want:
+            raise InputError(f"sample rate {rate:.9g} Hz disagrees with the profile's "
+                             f"sampling.rate_hz = {want:.9g} Hz", source=src)
+    return record
+
+
+# ---------------------------------------------------------------------------------- helpers
+
+
+def _suffix(path: Path) -> str:
+    suffix = path.suffix.lower()
+    if suffix not in FORMATS:
+        raise InputError(f"unknown record format '{path.suffix}' (expected {', '.join(FORMATS)})",
+                         source=str(path))
+    return suffix
+
+
+def _uniform_step(t: np.ndarray, src: str) -> float:
+    """Mean time step (s) of an increasing time column whose steps all lie within
+    ``TIME_TOLERANCE`` (relative) of the median step."""
+    dt = np.diff(t)
+    bad = dt <= 0
+    if bad.any():
+        i = int(np.argmax(bad)) + 1
+        raise InputError(f"time is not increasing at sample {i} (t = {t[i]!r} after {t[i - 1]!r})", source=src)
+    ref = float(np.median(dt))
+    bad = np.abs(dt - ref) > TIME_TOLERANCE * ref
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise InputError(f"non-uniform time: step {dt[i]:.9g} s at sample {i + 1}, expected {ref:.9g} s "
+                         f"(relative tolerance {TIME_TOLERANCE:g})", source=src)
+    return float(t[-1] - t[0]) / (t.size - 1)
+
+
+def _from_columns(cols: dict, src: str, meta: dict, found) -> Record:
+    """Build a :class:`Record` from name -> array (``found``: all names in the file), checking
+    presence, type, shape and lengths."""
+    missing = [k for k in REQUIRED if k not in cols]
+    if missing:
+        s = "s" if len(missing) > 1 else ""
+        raise InputError(f"missing required column{s} {', '.join(map(repr, missing))} "
+                         f"(found: {', '.join(found) or 'none'})", source=src)
+    out = {}
+    for name, a in cols.items():
+        a = np.asarray(a)
+        if a.dtype.kind not in "iuf":
+            raise InputError(f"column '{name}' is not numeric (dtype {a.dtype})", source=src)
+        if a.ndim != 1:
+            raise InputError(f"column '{name}' must be 1-D, has shape {a.shape}", source=src)
+        if a.size != cols["t"].size:
+            raise InputError(f"column '{name}' has {a.size} samples, 't' has {cols['t'].size}", source=src)
+        out[name] = np.ascontiguousarray(a, dtype=np.float64)
+    return Record(t=out["t"], v_abc=np.stack([out[k] for k in VOLTAGES]), i_abc=np.stack([out[k] for k in CURRENTS]),
+                  theta_e=out.get("theta_e"), omega_e=out.get("omega_e"), source=src, meta=meta)
+
+
+def _plain(value):
+    """A meta value as plain JSON-able Python: numpy scalars and arrays converted, others -> str."""
+    if isinstance(value, (np.ndarray, np.generic)) and not isinstance(value, np.datetime64):
+        return value.tolist()
+    return value if isinstance(value, (str, int, float, bool, list, dict, type(None))) else str(value)
+
+
+# CSV ------------------------------------------------------------------------------------------
+
+_CONVERT = re.compile(r"could not convert string '(.*)' to \w+ at row (\d+), column (\d+)")
+_RAGGED = re.compile(r"at row (\d+) with (\d+) columns")
+
+
+def _read_csv(path: Path, src: str):
+    try:
+        with open(path, encoding="utf-8-sig", newline="") as f:
+            header = [h.strip() for h in next(csv.reader([f.readline()]), [])]
+            dup = sorted({h for h in header if h in UNITS and header.count(h) > 1})
+            if dup:
+                raise InputError(f"duplicate column '{dup[0]}'", source=src)
+            names = [k for k in UNITS if k in header]
+            if not names:
+                return {}, {}, header
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)  # "input contained no data"
+                data = np.loadtxt(f, delimiter=",", usecols=[header.index(k) for k in names], ndmin=2)
+    except UnicodeDecodeError as err:
+        raise InputError(f"cannot read CSV: not UTF-8 text ({err.reason} at byte {err.start})", source=src) from err
+    except OSError as err:
+        raise InputError(f"cannot read CSV: {err.strerror or err}", source=src) from err
+    except ValueError as err:
+        msg = str(err)
+        if m := _CONVERT.search(msg):
+            value, row, col = m.group(1), int(m.group(2)), int(m.group(3))
+            raise InputError(f"non-numeric value {value!r} in column '{header[col - 1]}' at sample {row}",
+                             source=src) from err
+        if m := _RAGGED.search(msg):  # numpy counts this row from 1, the one above from 0
+            raise InputError(f"sample {int(m.group(1)) - 1} has only {m.group(2)} fields, header has {len(header)}",
+                             source=src) from err
+        raise InputError(f"cannot parse CSV: {msg}", source=src) from err
+    if data.shape[1] != len(names):  # no data rows
+        data = np.empty((0, len(names)))
+    return dict(zip(names, data.T)), {}, header
+
+
+def _write_csv(record: Record, path: Path) -> None:
+    cols = record.channels()
+    np.savetxt(path, np.column_stack(list(cols.values())), delimiter=",", header=",".join(cols), comments="",
+               fmt=["%.17g" if k == "t" else "%.10g" for k in cols])  # t exact: the step tolerance is 1e-6
+
+
+# NPZ ------------------------------------------------------------------------------------------
+
+
+def _read_npz(path: Path, src: str):
+    key = None
+    try:  # any failure of the archive reader means a corrupt file
+        z = np.load(path, allow_pickle=False)
+        if not isinstance(z, np.lib.npyio.NpzFile):
+            raise TypeError("not an NPZ archive (a single .npy array?)")
+        with z:
+            found = [k for k in z.files if k != META_KEY]
+            cols = {}
+            for key in (k for k in (*UNITS, META_KEY) if k in z.files):
+                cols[key] = z[key]
+    except Exception as err:  # noqa: BLE001
+        where = f" (array '{key}')" if key else ""
+        raise InputError(f"cannot read NPZ{where}: {err}", source=src) from err
+    meta = {}
+    if META_KEY in cols:
+        try:
+            meta = json.loads(str(cols.pop(META_KEY).reshape(-1)[0]))
+        except (ValueError, IndexError) as err:
+            raise InputError(f"'{META_KEY}' is not a JSON string: {err}", source=src) from err
+        if not isinstance(meta, dict):
+            raise InputError(f"'{META_KEY}' must be a JSON object", source=src)
+    return cols, meta, found
+
+
+def _write_npz(record: Record, path: Path) -> None:
+    meta = np.array(json.dumps(record.meta, default=_plain))
+    with open(path, "wb") as f:  # a file object: np.savez would otherwise append ".npz" to odd names
+        np.savez(f, **record.channels(), **{META_KEY: meta})
+
+
+# TDMS -----------------------------------------------------------------------------------------
+
+
+def _read_tdms(path: Path, src: str):
+    from nptdms import TdmsFile
+
+    try:
+        tf = TdmsFile.read(path)
+    except Exception as err:  # noqa: BLE001 - npTDMS raises many types on corrupt files
+        raise InputError(f"cannot read TDMS: {err}", source=src) from err
+    groups = {g.name: g for g in tf.groups()}
+    named = tf.properties.get(GROUP_PROPERTY)
+    if named is not None:
+        if named not in groups:
+            raise InputError(f"group '{named}' named by root property '{GROUP_PROPERTY}' not found "
+                             f"(groups: {', '.join(groups) or 'none'})", source=src)
+        group = groups[named]
+    else:
+        fits = [g for g in groups.values() if all(k in g for k in REQUIRED[1:])]
+        if len(groups) == 1 or len(fits) == 1:
+            group = fits[0] if len(fits) == 1 else next(iter(groups.values()))
+        else:
+            raise InputError(f"cannot tell which of {len(groups)} groups holds the record "
+                             f"({', '.join(groups) or 'none'}); name it with the root property "
+                             f"'{GROUP_PROPERTY}'", source=src)
+    chans = {k: group[k] for k in UNITS if k in group}
+    cols = {k: c[:] for k, c in chans.items()}
+    signals = [k for k in chans if k != "t"]
+    if signals:
+        ref = signals[0]
+        inc = [chans[k].properties.get("wf_increment") for k in signals]
+        if all(v is not None for v in inc):
+            d0 = float(inc[0])
+            for k, d in zip(signals, inc):
+                if abs(float(d) - d0) > TIME_TOLERANCE * abs(d0):
+                    raise InputError(f"channel '{k}' has wf_increment {float(d):.9g} s, '{ref}' has {d0:.9g} s",
+                                     source=src)
+            t0 = float(chans[ref].properties.get("wf_start_offset", 0.0))
+            cols["t"] = t0 + d0 * np.arange(cols[ref].size)
+        elif "t" not in cols:
+            k = signals[inc.index(None)]
+            raise InputError(f"channel '{k}' has no wf_increment property and there is no 't' channel",
+                             source=src)
+    return cols, {k: _plain(v) for k, v in group.properties.items()}, [c.name for c in group.channels()]
+
+
+def _tdms_value(value):
+    """A meta value as a TDMS property: scalars as they are, anything else as JSON text."""
+    value = _plain(value)
+    return value if isinstance(value, (str, int, float, bool)) else json.dumps(value, default=_plain)
+
+
+def _write_tdms(record: Record, path: Path) -> None:
+    from nptdms import ChannelObject, GroupObject, RootObject, TdmsWriter
+
+    step = _uniform_step(record.t, record.source)
+    meta = {k: _tdms_value(v) for k, v in record.meta.items()}
+    objects = [RootObject({GROUP_PROPERTY: TDMS_GROUP}), GroupObject(TDMS_GROUP, meta)]
+    for name, x in record.channels().items():
+        if name != "t":
+            props = {"wf_increment": step, "wf_start_offset": float(record.t[0]), "wf_samples": x.size,
+                     "unit_string": UNITS[name]}
+            objects.append(ChannelObject(TDMS_GROUP, name, np.asarray(x, dtype=np.float64), properties=props))
+    with TdmsWriter(path) as writer:
+        writer.write_segment(objects)
+
+
+_READERS = {".csv": _read_csv, ".npz": _read_npz, ".tdms": _read_tdms}
+_WRITERS = {".csv": _write_csv, ".npz": _write_npz, ".tdms": _write_tdms}

@@ -1,0 +1,87 @@
+"""Windowed amplitude spectrum and peak search (Alg. 3), against scipy and analytic values."""
+
+import numpy as np
+import pytest
+from scipy.signal import periodogram
+
+from agent.spectrum import WINDOWS, amplitude_spectrum, peak_near
+
+FS, N = 25_000.0, 25_000  # 1 Hz bins
+DF = FS / N
+T = np.arange(N) / FS
+
+
+@pytest.mark.parametrize("window", list(WINDOWS))
+def test_on_bin_tone_reads_its_amplitude_and_dc_is_not_doubled(window):
+    x = 0.7 + 3.0 * np.cos(2 * np.pi * 100.0 * T + 0.4) + 0.5 * np.cos(np.pi * FS * T)  # DC, tone, Nyquist
+    f, a = amplitude_spectrum(x, FS, window)
+    np.testing.assert_allclose(f, np.fft.rfftfreq(N, 1 / FS))
+    assert a[100] == pytest.approx(3.0, rel=1e-9)
+    assert a[0] == pytest.approx(0.7, rel=1e-9)
+    assert a[-1] == pytest.approx(0.5, rel=1e-9)
+
+
+@pytest.mark.parametrize("window", list(WINDOWS))
+@pytest.mark.parametrize("n", [1000, 1001])
+def test_matches_scipy_periodogram(window, n):
+    x = np.random.default_rng(1).normal(size=n)
+    f, a = amplitude_spectrum(x, FS, window)
+    fp, p = periodogram(x, FS, window=WINDOWS[window], detrend=False, scaling="spectrum")
+    doubled = np.ones(p.size, dtype=bool)  # periodogram doubles the power of all but DC (and Nyquist, n even)
+    doubled[0] = False
+    doubled[-1] = n % 2 == 1
+    np.testing.assert_allclose(f, fp)
+    np.testing.assert_allclose(a, np.sqrt(p * np.where(doubled, 2.0, 1.0)), rtol=1e-9, atol=1e-15)
+
+
+def test_rows_are_vectorised():
+    rng = np.random.default_rng(2)
+    x = rng.normal(size=(4, 512))
+    f, a = amplitude_spectrum(x, 1000.0)
+    assert a.shape == (4, 257)
+    for row, xr in zip(a, x):
+        np.testing.assert_allclose(row, amplitude_spectrum(xr, 1000.0)[1], rtol=1e-12)
+
+
+def test_scalloping_between_bins():
+    """A tone half-way between bins: Hann reads 8/(3 pi) of A, flat-top within 0.2 % (0.02 dB)."""
+    x = 2.0 * np.cos(2 * np.pi * 100.5 * T)
+    f, a = amplitude_spectrum(x, FS, "hann")
+    assert a[100] == pytest.approx(a[101], rel=1e-6)
+    assert a[100] == pytest.approx(2.0 * 8 / (3 * np.pi), rel=1e-4)
+    f, a = amplitude_spectrum(x, FS, "flattop")
+    assert a[100] == pytest.approx(2.0, rel=2e-3)
+
+
+def test_unknown_window():
+    with pytest.raises(ValueError, match="unknown window 'kaiser'.*hann, flattop, rect"):
+        amplitude_spectrum(np.zeros(8), 1.0, "kaiser")
+
+
+def test_peak_near_tolerates_bin_spacing():
+    x = np.cos(2 * np.pi * 87.3 * T) + 5.0 * np.cos(2 * np.pi * 92.0 * T)  # big tone 4.7 bins away
+    f, a = amplitude_spectrum(x, FS)
+    i, fi, m = peak_near(f, a, 87.5)  # target 0.2 bins off the tone, tone 0.3 bins off bin 87
+    assert (i, fi) == (87, 87.0) and isinstance(i, int) and isinstance(m, float)
+    assert m == pytest.approx(a[87]) and 0.85 < m < 1.0
+    assert peak_near(f, a, 88.4)[0] == 87  # 1.4 bins off: still inside 1.5 bins
+    assert peak_near(f, a, 88.4, tol_hz=0.1)[0] == 87  # a smaller tolerance is widened to 1.5 bins
+    assert peak_near(f, a, 89.0, tol_hz=3.5)[0] == 92  # an explicit wider tolerance reaches the big tone
+    assert peak_near(f, a, 89.0)[0] in (88, 90)  # the big tone is outside 1.5 bins
+
+
+def test_peak_near_rows():
+    rates = np.array([1.0, 2.0, 3.0])[:, None]
+    x = rates * np.cos(2 * np.pi * np.array([[74.0], [75.0], [76.0]]) * T)
+    f, a = amplitude_spectrum(x, FS)
+    i, fi, m = peak_near(f, a, 75.0)
+    np.testing.assert_array_equal(i, [74, 75, 76])
+    np.testing.assert_array_equal(fi, [74.0, 75.0, 76.0])
+    np.testing.assert_allclose(m, [1.0, 2.0, 3.0], rtol=1e-9)
+
+
+def test_peak_near_outside_spectrum():
+    f, a = amplitude_spectrum(np.cos(np.pi * np.arange(100)), 100.0, "rect")  # a tone at Nyquist
+    assert peak_near(f, a, 50.5)[0] == 50  # just past Nyquist, within 1.5 bins
+    with pytest.raises(ValueError, match="no spectrum bin within"):
+        peak_near(f, a, 60.0)
