@@ -19,7 +19,8 @@ import numpy as np
 import scipy.stats
 
 from agent.frames import dq_to_abc
-from agent.identify import PREFILTER_HZ, FitResult, constrain, fit_record, record_signals, refine_output_error
+from agent.identify import (PREFILTER_HZ, FitResult, constrain, fit_record, psi_m_prior, record_signals,
+                            refine_output_error)
 from agent.model import DQModel, Signals
 from agent.profile import DriveProfile
 from agent.records import Record
@@ -131,7 +132,7 @@ class Baseline:
 def identify_baseline(records: list[Record], profile: DriveProfile, *, form: str = "lumped",
                       robust: bool = False, window_s: float = WINDOW_S, confidence: float = 0.95,
                       region: str = "prediction", prefilter_hz: float | None = PREFILTER_HZ,
-                      refine: bool = True, progress=None) -> Baseline:
+                      refine: bool = False, progress=None) -> Baseline:
     """Algs. 2-4 on m healthy records; ``progress(i, m, text)`` is called per step when given."""
     m = len(records)
     if m < 4:
@@ -143,7 +144,7 @@ def identify_baseline(records: list[Record], profile: DriveProfile, *, form: str
         sig = record_signals(rec, profile)
         sigs.append(sig)
         fits.append(fit_record(sig, profile, form, prefilter_hz=prefilter_hz))
-    model = average_model(fits, robust)
+    model = average_model(fits, robust, psi_m_prior(profile))
     if refine:
         model = refine_output_error(model, sigs)
     spectra = []
@@ -167,7 +168,7 @@ def identify_baseline(records: list[Record], profile: DriveProfile, *, form: str
     )
 
 
-def average_model(fits: list[FitResult], robust: bool = False) -> DQModel:
+def average_model(fits: list[FitResult], robust: bool = False, psi_m: float | None = None) -> DQModel:
     """Alg. 2 line 10: the mean (or median) of the per-record parameters, kept plausible."""
     agg = np.median if robust else np.mean
     first = fits[0].model
@@ -177,6 +178,6 @@ def average_model(fits: list[FitResult], robust: bool = False) -> DQModel:
     ok, reason = model.is_plausible()
     if not ok:
         pooled = FitResult(model, np.zeros(2), sum(f.info_d for f in fits), sum(f.info_q for f in fits))
-        constrain(pooled)
+        constrain(pooled, psi_m)
         model.meta["constrained"] = reason
     return model

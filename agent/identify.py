@@ -29,7 +29,7 @@ from agent.profile import DriveProfile
 from agent.records import Record
 from agent.rls import StreamingRLS
 
-PREFILTER_HZ = 1000.0  #: default prefilter cut-off, Hz (4th-order Butterworth)
+PREFILTER_HZ: float | None = None  #: default prefilter cut-off, Hz (4th-order Butterworth); None = off
 PREFILTER_ORDER = 4
 
 
@@ -107,33 +107,47 @@ def fit_record(sig: Signals, profile: DriveProfile, form: str = "lumped",
     fit = FitResult(model, rls_t.theta, info_d, info_q, operating_point=op)
     ok, reason = model.is_plausible()
     if not ok:
-        constrain(fit)
+        constrain(fit, psi_m_prior(profile))
         fit.constrained, fit.reason = True, reason
     return fit
 
 
-def constrain(fit: FitResult) -> None:
+def psi_m_prior(profile: DriveProfile) -> float | None:
+    """Nameplate estimate of the magnet flux linkage, Wb: T_rated = 1.5 p psi_m sqrt(2) I_rated (id = 0)."""
+    m = profile.motor
+    if m.rated_current_a is None:
+        return None
+    return m.rated_torque_nm / (1.5 * m.pole_pairs * np.sqrt(2.0) * m.rated_current_a)
+
+
+def constrain(fit: FitResult, psi_m: float | None = None) -> None:
     """Replace the base parameters by the plausible (Rs, Ld, Lq, psi_m > 0) set closest to the
-    estimate in the information metric: min sum_axes (g(p) - theta)^T R (g(p) - theta)."""
+    estimate in the information metric: min sum_axes (g(p) - theta)^T R (g(p) - theta).
+
+    At one steady operating point only Rs i_q + omega_e psi_m is identifiable, not the two apart;
+    ``psi_m`` (Wb, e.g. :func:`psi_m_prior`) fixes the magnet flux so that Rs takes the rest.
+    """
     model = fit.model
     w = 2 * np.pi * model.fe_hz
     nd, nq = len(BASE_TERMS[model.form][0]), len(BASE_TERMS[model.form][1])
-    target = np.concatenate((model.theta_d, model.theta_q))
     chol_d, chol_q = _sqrt_info(fit.info_d), _sqrt_info(fit.info_q)
     scale = np.array([1.0, 1e-2, 1e-2, 0.1])  # Rs ohm, Ld H, Lq H, psi_m Wb: typical magnitudes
+    phys = model.physical(w)
+    guess = np.array([phys["Rs_q"], phys["Ld"], phys["Lq"], phys["psi_m"] if psi_m is None else psi_m])
+    guess = np.where(np.isfinite(guess) & (guess > 0), guess, scale)
+    free = slice(0, 4 if psi_m is None else 3)
+
+    def params(z):
+        p = guess.copy()
+        p[free] = np.exp(z) * scale[free]
+        return p
 
     def residual(z):
-        p = np.exp(z) * scale
-        g_d, g_q = lumped_params(model.form, model.ts, *p, w)
-        th_d = np.concatenate((g_d, model.theta_d[nd:]))
-        th_q = np.concatenate((g_q, model.theta_q[nq:]))
-        return np.concatenate((chol_d @ (th_d - target[: th_d.size]), chol_q @ (th_q - target[th_d.size:])))
+        g_d, g_q = lumped_params(model.form, model.ts, *params(z), w)
+        return np.concatenate((chol_d @ (g_d - model.theta_d[:nd]), chol_q @ (g_q - model.theta_q[:nq])))
 
-    phys = model.physical(w)
-    guess = [phys["Rs_q"], phys["Ld"], phys["Lq"], phys["psi_m"]]
-    z0 = np.log(np.clip(np.nan_to_num(guess, nan=1.0), 1e-6 * scale, None) / scale)
-    sol = scipy.optimize.least_squares(residual, z0, method="trf")
-    model.from_physical(*(np.exp(sol.x) * scale), omega_e=w)
+    sol = scipy.optimize.least_squares(residual, np.log(guess[free] / scale[free]), method="trf")
+    model.from_physical(*params(sol.x), omega_e=w)
 
 
 def _sqrt_info(info: np.ndarray) -> np.ndarray:

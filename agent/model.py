@@ -230,3 +230,16 @@ def torque_regression(sig: Signals, pole_pairs: int, torque_per_watt: float) -> 
     t_shaft = torque_per_watt * input_power(sig.v_abc, sig.i_abc)
     theta_m = (sig.theta_e - sig.theta_e[0]) / pole_pairs
     return np.column_stack((theta_m, sig.omega_e / pole_pairs)), t_shaft
+
+
+def nrmse(i_meas: np.ndarray, i_model: np.ndarray) -> dict[str, float]:
+    """Normalised RMS error of dq currents (2, N), as fractions.
+
+    Each axis and the total are normalised by the RMS current-vector magnitude
+    sqrt(mean(i_d^2 + i_q^2)), so the d axis (near zero under id = 0 control) gets a meaningful
+    figure; ``total`` equals the per-phase RMS error over the per-phase RMS current.
+    """
+    err = np.asarray(i_meas) - np.asarray(i_model)
+    ref = np.sqrt(np.mean(np.sum(np.asarray(i_meas) ** 2, axis=0)))
+    d, q = np.sqrt(np.mean(err**2, axis=1)) / ref
+    return {"d": float(d), "q": float(q), "total": float(np.sqrt(np.mean(np.sum(err**2, axis=0))) / ref)}
