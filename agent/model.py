@@ -49,10 +49,14 @@ class Signals:
 
     @classmethod
     def from_abc(cls, v_abc, i_abc, theta_e, omega_e, ts) -> "Signals":
+        """Currents are samples at t_k; voltage sample k is the voltage held over [t_k, t_k + T_s)
+        (the zero-order hold behind eq. 6), so it is rotated at the interval's mid angle
+        theta_e + omega_e T_s / 2."""
         theta_e = np.unwrap(np.asarray(theta_e, dtype=float))
+        omega_e = np.asarray(omega_e, dtype=float)
         i_dq, _ = abc_to_dq(i_abc, theta_e)
-        v_dq, _ = abc_to_dq(v_abc, theta_e)
-        return cls(i_dq, v_dq, theta_e, np.asarray(omega_e, dtype=float), ts, np.asarray(i_abc), np.asarray(v_abc))
+        v_dq, _ = abc_to_dq(v_abc, theta_e + 0.5 * omega_e * ts)
+        return cls(i_dq, v_dq, theta_e, omega_e, ts, np.asarray(i_abc), np.asarray(v_abc))
 
     def slice(self, start: int, stop: int) -> "Signals":
         cut = slice(start, stop)

@@ -33,7 +33,7 @@ def euler_plant(n=50_000, omega0=2 * np.pi * 100, omega_ripple=0.0, seed=0):
         d, q, w = i[0, k], i[1, k], omega[k]
         i[0, k + 1] = (1 - RS * TS / LD) * d + w * LQ * TS / LD * q + TS / LD * v[0, k]
         i[1, k + 1] = -w * LD * TS / LQ * d + (1 - RS * TS / LQ) * q + TS / LQ * v[1, k] - w * PSI * TS / LQ
-    return Signals.from_abc(dq_to_abc(v, theta), dq_to_abc(i, theta), theta, omega, TS)
+    return Signals.from_abc(dq_to_abc(v, theta + 0.5 * omega * TS), dq_to_abc(i, theta), theta, omega, TS)
 
 
 @pytest.mark.parametrize("form", ["lumped", "speed"])
@@ -122,7 +122,7 @@ def test_constrained_fit_on_data_that_hides_an_effect():
     sig = euler_plant(seed=11)
     v = sig.v_dq.copy()
     v[0] += 40.0  # 40 V the model cannot explain (no constant in eq. 13)
-    shifted = Signals.from_abc(dq_to_abc(v, sig.theta_e), sig.i_abc, sig.theta_e, sig.omega_e, TS)
+    shifted = Signals.from_abc(dq_to_abc(v, sig.theta_e + 0.5 * sig.omega_e * TS), sig.i_abc, sig.theta_e, sig.omega_e, TS)
     fit = fit_record(shifted, PROFILE, "lumped", prefilter_hz=None)
     ok, _ = fit.model.is_plausible()
     assert ok
