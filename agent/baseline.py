@@ -24,9 +24,10 @@ from agent.identify import (PREFILTER_HZ, FitResult, constrain, fit_record, psi_
 from agent.model import DQModel, Signals
 from agent.profile import DriveProfile
 from agent.records import Record
-from agent.spectrum import amplitude_spectrum
+from agent.spectrum import amplitude_spectrum, envelope
 
 WINDOW_S = 2.0  #: residual-spectrum window, s (0.5 Hz resolution)
+SEARCH_BINS = 1  #: a fault line is read as the largest bin within this many bins of it
 F_MAX_HZ = 1000.0  #: highest frequency kept in the thresholds, Hz
 MAD_SCALE = 1.4826  #: MAD -> standard deviation for normal data
 
@@ -59,13 +60,18 @@ def centre_spread(values: np.ndarray, robust: bool, axis: int = 0) -> tuple[np.n
 
 @dataclass
 class Thresholds:
-    """Per-bin residual-spectrum statistics (Alg. 3)."""
+    """Per-bin residual-spectrum statistics (Alg. 3).
+
+    The statistics are taken of each healthy spectrum's envelope (largest bin within
+    ``search_bins``), the same statistic the decision reads at a fault line, so that searching
+    a line between bins does not by itself raise the false-alarm rate."""
 
     freqs_hz: np.ndarray
     centre: np.ndarray
     spread: np.ndarray
     window_s: float = WINDOW_S
     robust: bool = False
+    search_bins: int = SEARCH_BINS  #: statistics are of the spectrum's envelope over +-search_bins
 
     @property
     def th2(self) -> np.ndarray:
@@ -132,7 +138,7 @@ class Baseline:
 def identify_baseline(records: list[Record], profile: DriveProfile, *, form: str = "lumped",
                       robust: bool = False, window_s: float = WINDOW_S, confidence: float = 0.95,
                       region: str = "prediction", prefilter_hz: float | None = PREFILTER_HZ,
-                      refine: bool = False, progress=None) -> Baseline:
+                      refine: bool = False, spectrum_rule: str = "pair", progress=None) -> Baseline:
     """Algs. 2-4 on m healthy records; ``progress(i, m, text)`` is called per step when given."""
     m = len(records)
     if m < 4:
@@ -153,7 +159,7 @@ def identify_baseline(records: list[Record], profile: DriveProfile, *, form: str
             progress(m + j, 2 * m, f"residual spectrum {rec.source}")
         freqs, amp = window_spectrum(residual_phase_a(model, sig), profile.sampling.rate_hz, window_s)
         spectra.append(amp)
-    centre, spread = centre_spread(np.array(spectra), robust)
+    centre, spread = centre_spread(envelope(np.array(spectra), SEARCH_BINS), robust)
     op_all = np.array([[f.operating_point["fe_hz"], f.operating_point["load_pct"]] for f in fits])
     op = dict(zip(("fe_hz", "load_pct"), np.median(op_all, axis=0).tolist()))
     op.update(fe_spread_hz=float(np.ptp(op_all[:, 0])), load_spread_pct=float(np.ptp(op_all[:, 1])))
@@ -164,6 +170,7 @@ def identify_baseline(records: list[Record], profile: DriveProfile, *, form: str
         operating_point=op, records=[r.source for r in records],
         settings={"form": form, "robust": robust, "window_s": window_s, "prefilter_hz": prefilter_hz,
                   "confidence": confidence, "region": region, "refine": refine,
+                  "spectrum_rule": spectrum_rule,
                   "constrained_records": sum(f.constrained for f in fits)},
     )
 

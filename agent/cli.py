@@ -110,7 +110,8 @@ def cmd_identify(args) -> None:
     recs = _load_records(args.data, profile, min_samples=int(args.window * profile.sampling.rate_hz) + 2)
     t0 = time.perf_counter()
     base = identify_baseline(recs, profile, form=args.form, robust=args.robust, window_s=args.window,
-                             confidence=args.confidence, region=args.region, progress=_progress)
+                             confidence=args.confidence, region=args.region, spectrum_rule=args.spectrum_rule,
+                             progress=_progress)
     save_baseline(base, args.out)
     m = base.model
     names_d, names_q = (tuple(t.name for t in ts) for ts in m.terms)
@@ -197,6 +198,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--confidence", type=float, default=0.95, help="parameter-cluster region (default 0.95)")
     s.add_argument("--region", choices=("prediction", "chi2"), default="prediction",
                    help="cluster region: Hotelling prediction ellipse (default) or chi-square")
+    s.add_argument("--spectrum-rule", choices=("pair", "line"), default="pair",
+                   help="a fault needs both sidebands fe -+ k f above threshold (pair, default) or one line (line)")
     s.add_argument("data", nargs="+", help="healthy records")
     s.set_defaults(func=cmd_identify)
 

@@ -230,9 +230,14 @@ def input_power(v_abc: np.ndarray, i_abc: np.ndarray) -> np.ndarray:
 
 def torque_regression(sig: Signals, pole_pairs: int, torque_per_watt: float) -> tuple[np.ndarray, np.ndarray]:
     """Eq. 15: X = [theta_m, omega_m] (N, 2), y = T_shaft (N,) with T_shaft = (T_rated/P_rated) P_in
-    (eq. 10) and theta_m = theta_e/p, omega_m = omega_e/p (eq. 12), theta_m from the record start."""
+    (eq. 10) and theta_m = theta_e/p, omega_m = omega_e/p (eq. 12).
+
+    theta_m is the unwrapped angle measured from the middle of the record: at steady speed it is
+    then orthogonal to the constant omega_m, so K_GT takes the torque's drift over the record and
+    B_GT the mean torque over speed, instead of the two trading off through an arbitrary origin.
+    """
     t_shaft = torque_per_watt * input_power(sig.v_abc, sig.i_abc)
-    theta_m = (sig.theta_e - sig.theta_e[0]) / pole_pairs
+    theta_m = (sig.theta_e - np.mean(sig.theta_e)) / pole_pairs
     return np.column_stack((theta_m, sig.omega_e / pole_pairs)), t_shaft
 
 

@@ -40,7 +40,7 @@ def baseline_to_json(b: Baseline) -> dict:
                   "theta_q": _arr(m.theta_q), "effects": m.meta.get("effects", []),
                   "physical": m.physical(), "meta": {k: v for k, v in m.meta.items() if k != "effects"}},
         "thresholds": {"freqs_hz": _arr(th.freqs_hz), "centre": _arr(th.centre), "spread": _arr(th.spread),
-                       "window_s": th.window_s, "robust": th.robust},
+                       "window_s": th.window_s, "robust": th.robust, "search_bins": th.search_bins},
         "cluster": {"points": _arr(cl.points), "centre": _arr(cl.centre), "cov": _arr(cl.cov),
                     "limit": cl.limit, "confidence": cl.confidence, "region": cl.region},
         "records": b.records, "settings": b.settings, "history": b.history,
@@ -55,17 +55,13 @@ def baseline_from_json(doc: dict, source: str = "<model>") -> Baseline:
                          source=source)
     try:
         m, th, cl = doc["model"], doc["thresholds"], doc["cluster"]
-        if m.get("effects"):
-            from agent.effects import model_terms  # the workbench's effect library
-            extra_d, extra_q = model_terms(m["effects"])
-        else:
-            extra_d, extra_q = (), ()
+        extra_d, extra_q = effect_terms(m.get("effects", []), source)
         model = DQModel(m["form"], float(m["ts"]), np.array(m["theta_d"]), np.array(m["theta_q"]),
                         extra_d, extra_q, fe_hz=float(m["fe_hz"]), meta={**m.get("meta", {}), "effects": m.get("effects", [])})
         return Baseline(
             profile=parse_profile(doc["profile"], source=source), model=model,
             thresholds=Thresholds(np.array(th["freqs_hz"]), np.array(th["centre"]), np.array(th["spread"]),
-                                  float(th["window_s"]), bool(th["robust"])),
+                                  float(th["window_s"]), bool(th["robust"]), int(th["search_bins"])),
             cluster=Cluster(np.array(cl["points"]), np.array(cl["centre"]), np.array(cl["cov"]),
                             float(cl["limit"]), float(cl["confidence"]), cl["region"]),
             operating_point=doc["operating_point"], records=list(doc.get("records", [])),
@@ -74,6 +70,17 @@ def baseline_from_json(doc: dict, source: str = "<model>") -> Baseline:
         raise
     except (KeyError, TypeError, ValueError) as err:
         raise InputError(f"corrupt model file ({type(err).__name__}: {err})", source=source) from None
+
+
+def effect_terms(effects: list, source: str):
+    """Regressor terms (d, q) of a model's named effects, from the workbench's effect library."""
+    if not effects:
+        return (), ()
+    try:
+        from agent.effects import model_terms
+    except ImportError:
+        raise InputError(f"model uses effects {effects} but this build has no effect library", source=source) from None
+    return model_terms(effects)
 
 
 def save_baseline(b: Baseline, path: str | Path) -> Path:

@@ -10,6 +10,7 @@ from __future__ import annotations
 from functools import lru_cache
 
 import numpy as np
+from scipy.ndimage import maximum_filter1d
 from scipy.signal import get_window
 
 #: Supported window names -> scipy.signal names.
@@ -40,22 +41,36 @@ def amplitude_spectrum(x, rate_hz: float, window: str = "hann") -> tuple[np.ndar
     return np.fft.rfftfreq(n, 1.0 / rate_hz), amp
 
 
-def peak_near(freqs, amplitude, f_hz: float, tol_hz: float | None = None):
-    """Largest bin within ``max(tol_hz, 1.5 bin spacings)`` of ``f_hz`` (Hz).
+def peak_near(freqs, amplitude, f_hz: float, half_width: int = 1):
+    """Largest bin among the bin nearest ``f_hz`` (Hz) and ``half_width`` bins either side.
 
-    ``freqs`` is the uniform bin grid of :func:`amplitude_spectrum`. Returns ``(index, freq_hz,
-    magnitude)``: scalars for ``amplitude`` shaped ``(nbins,)``, arrays ``(m,)`` for ``(m, nbins)``.
-    Raises ``ValueError`` when no bin lies within the tolerance.
+    Tolerant of bin spacing: a line between bins, or a target off by up to half a bin plus
+    ``half_width`` bins, is still found. ``freqs`` is the uniform grid of :func:`amplitude_spectrum`.
+    Returns ``(index, freq_hz, magnitude)``: scalars for ``amplitude`` shaped ``(nbins,)``, arrays
+    ``(m,)`` for ``(m, nbins)``. Raises ``ValueError`` when ``f_hz`` is off the grid by more than
+    ``half_width`` bins. The same statistic per bin is :func:`envelope`.
     """
     freqs = np.asarray(freqs, dtype=float)
     amplitude = np.asarray(amplitude)
-    tol = max(tol_hz or 0.0, 1.5 * (freqs[1] - freqs[0]))
-    lo = int(np.searchsorted(freqs, f_hz - tol, side="left"))
-    hi = int(np.searchsorted(freqs, f_hz + tol, side="right"))
-    if hi <= lo:
-        raise ValueError(f"no spectrum bin within {tol:g} Hz of {f_hz:g} Hz (bins {freqs[0]:g}..{freqs[-1]:g} Hz)")
-    seg = amplitude[..., lo:hi]
-    idx, mag = lo + seg.argmax(axis=-1), seg.max(axis=-1)
+    centre = nearest_bin(freqs, f_hz, half_width)
+    lo, hi = max(centre - half_width, 0), min(centre + half_width + 1, freqs.size)
+    idx = lo + np.argmax(amplitude[..., lo:hi], axis=-1)
+    mag = np.take_along_axis(amplitude, np.asarray(idx)[..., None], axis=-1)[..., 0]
     if amplitude.ndim == 1:
         return int(idx), float(freqs[idx]), float(mag)
     return idx, freqs[idx], mag
+
+
+def nearest_bin(freqs, f_hz: float, half_width: int = 0) -> int:
+    """Index of the bin nearest ``f_hz``; ``ValueError`` if it lies more than ``half_width`` + 1/2 bins off the grid."""
+    df = freqs[1] - freqs[0]
+    pos = (f_hz - freqs[0]) / df
+    if not -half_width - 0.5 <= pos <= freqs.size - 0.5 + half_width:
+        raise ValueError(f"{f_hz:g} Hz is outside the spectrum ({freqs[0]:g}..{freqs[-1]:g} Hz)")
+    return int(np.clip(np.rint(pos), 0, freqs.size - 1))
+
+
+def envelope(amplitude, half_width: int = 1) -> np.ndarray:
+    """Per bin, the largest amplitude within ``half_width`` bins: the statistic :func:`peak_near`
+    reads at a line, so thresholds learned on it match the decision (last axis)."""
+    return maximum_filter1d(np.asarray(amplitude), size=2 * half_width + 1, axis=-1, mode="nearest")

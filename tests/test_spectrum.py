@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.signal import periodogram
 
-from agent.spectrum import WINDOWS, amplitude_spectrum, peak_near
+from agent.spectrum import WINDOWS, amplitude_spectrum, envelope, peak_near
 
 FS, N = 25_000.0, 25_000  # 1 Hz bins
 DF = FS / N
@@ -64,10 +64,20 @@ def test_peak_near_tolerates_bin_spacing():
     i, fi, m = peak_near(f, a, 87.5)  # target 0.2 bins off the tone, tone 0.3 bins off bin 87
     assert (i, fi) == (87, 87.0) and isinstance(i, int) and isinstance(m, float)
     assert m == pytest.approx(a[87]) and 0.85 < m < 1.0
-    assert peak_near(f, a, 88.4)[0] == 87  # 1.4 bins off: still inside 1.5 bins
-    assert peak_near(f, a, 88.4, tol_hz=0.1)[0] == 87  # a smaller tolerance is widened to 1.5 bins
-    assert peak_near(f, a, 89.0, tol_hz=3.5)[0] == 92  # an explicit wider tolerance reaches the big tone
-    assert peak_near(f, a, 89.0)[0] in (88, 90)  # the big tone is outside 1.5 bins
+    assert peak_near(f, a, 88.4)[0] == 87  # nearest bin 88, one bin either side reaches 87
+    assert peak_near(f, a, 88.6)[0] in (88, 89, 90)  # nearest bin 89: 87 is out of reach
+    assert peak_near(f, a, 89.0, half_width=3)[0] == 92  # a wider search reaches the big tone
+    assert peak_near(f, a, 89.0)[0] in (88, 89, 90)
+
+
+def test_envelope_is_the_peak_statistic_per_bin():
+    rng = np.random.default_rng(0)
+    a = rng.random((3, 200))
+    env = envelope(a, 1)
+    for f_hz in (0.0, 10.4, 57.5, 199.0):
+        c = int(round(f_hz))
+        np.testing.assert_allclose(peak_near(np.arange(200.0), a, f_hz)[2], env[:, c])
+    np.testing.assert_allclose(env[:, 50], a[:, 49:52].max(axis=1))
 
 
 def test_peak_near_rows():
@@ -82,6 +92,6 @@ def test_peak_near_rows():
 
 def test_peak_near_outside_spectrum():
     f, a = amplitude_spectrum(np.cos(np.pi * np.arange(100)), 100.0, "rect")  # a tone at Nyquist
-    assert peak_near(f, a, 50.5)[0] == 50  # just past Nyquist, within 1.5 bins
-    with pytest.raises(ValueError, match="no spectrum bin within"):
+    assert peak_near(f, a, 50.5)[0] == 50  # just past Nyquist, within the search
+    with pytest.raises(ValueError, match="outside the spectrum"):
         peak_near(f, a, 60.0)

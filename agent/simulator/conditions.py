@@ -14,8 +14,8 @@ Table 4 pattern can be tuned in one place:
   which raises the shaft torque, the input power and the paper's B_GT.
 
 A healthy transmission also has a mesh ripple (manufacturing tolerance, :data:`HEALTHY_RIPPLE`)
-whose amplitudes (uniform in ``RigParams.ripple_spread`` x base) and phases change from record to
-record. ``severity`` scales the fault ripple amplitudes and the friction increase ``friction - 1``.
+whose amplitudes vary from record to record (uniform in ``RigParams.ripple_spread`` x base); its
+phases and the defect positions are the machine's geometry (``RigParams.geometry_seed``). ``severity`` scales the fault ripple amplitudes and the friction increase ``friction - 1``.
 """
 
 from __future__ import annotations
@@ -61,8 +61,9 @@ FAMILIES = ("gm", "gl", "ch")
 #: The tunable fault table (amplitudes in N m at the motor shaft, severity = 1).
 CONDITIONS: dict[str, Condition] = {
     "healthy": Condition(None, 1.0, (), "manufacturing-tolerance ripple only"),
-    # one worn driven-gear tooth: wide pulse per driven revolution, k = 1..3 ~ 0.074, 0.028, 0.006 N m
-    "gear_slight_wear": Condition("gear", 1.0, (Pulse("gl", 0.16, 0.8),),
+    # one worn driven-gear tooth: a wide, shallow pulse per driven revolution, k = 1..3 ~ 0.074, 0.009,
+    # 0.0002 N m (the paper's Fig. 8a shows only the k = 1 sidebands 87.5 / 112.5 Hz)
+    "gear_slight_wear": Condition("gear", 1.0, (Pulse("gl", 0.16, 1.2),),
                                   "worn spot on one driven-gear tooth"),
     # wear along a whole tooth: larger, narrower pulse (k = 1..3 ~ 0.25, 0.17, 0.09 N m), more mesh loss
     "gear_severe_wear": Condition("gear", 1.5, (Pulse("gl", 0.71, 0.5),),

@@ -52,8 +52,10 @@ class RigParams:
     # --- numerics ---
     n_sub: int = 4  #: RK4 sub-steps per sample
     t_warmup: float = 0.2  #: s, simulated before t = 0 and discarded
-    # --- healthy mesh ripple spread (amplitude factor uniform in this range) ---
-    ripple_spread: tuple[float, float] = (0.5, 1.5)
+    # --- healthy mesh ripple: amplitude factor per record uniform in ripple_spread (temperature,
+    # lubricant film, load); phases and defect positions fixed by the machine's geometry ---
+    ripple_spread: tuple[float, float] = (0.8, 1.2)
+    geometry_seed: int = 7
 
     @property
     def u_max(self) -> float:

@@ -121,12 +121,15 @@ def simulate(profile, condition: str = "healthy", load_pct: float = 80.0, second
     n_tot = n_warm + n_rec + _TAPS_HALF
 
     # record-level random draws (fixed order and count: same seed -> same ripple/noise for any condition)
+    # The rig's geometry (where the defect sits on each part, the phases of the manufacturing ripple)
+    # belongs to the machine, not to the record: drawn from rig.geometry_seed.
+    geo = np.random.default_rng(rig.geometry_seed)
+    phi0 = geo.uniform(0.0, 2.0 * math.pi, 4)  # defect positions on gm, gl, ch, speed-ripple source
+    ph = geo.uniform(0.0, 2.0 * math.pi, (3, 3))  # healthy ripple phases per family and k
     rng = np.random.default_rng(seed)
     th1_0 = rng.uniform(0.0, 2.0 * math.pi)
-    phi0 = rng.uniform(0.0, 2.0 * math.pi, 4)  # geometry offsets of gm, gl, ch, speed-ripple source
     z_load, z_Tw, z_Tm = rng.standard_normal(3)
     amp_f = rng.uniform(*rig.ripple_spread, (3, 3))
-    ph = rng.uniform(0.0, 2.0 * math.pi, (3, 3))
     noise_drive = rng.standard_normal((2, n_tot)) * (rig.sigma_i_drive * math.sqrt(2.0 / 3.0))
     noise_i = rng.standard_normal((3, n_rec)) * rig.sigma_i
     noise_v = rng.standard_normal((3, n_rec)) * rig.sigma_v
