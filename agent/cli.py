@@ -8,6 +8,7 @@ failure.
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import logging
 import sys
@@ -19,6 +20,10 @@ import numpy as np
 from agent.errors import InputError
 
 log = logging.getLogger("pmsm-agent")
+
+#: Modules that add subcommands: each has ``add_commands(subparsers, common_parent)`` whose
+#: handlers take the parsed args and raise ``InputError`` for user errors.
+EXTENSIONS: tuple[str, ...] = ()
 
 
 # --- helpers --------------------------------------------------------------------------------
@@ -207,6 +212,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--model", required=True)
     s.add_argument("data", nargs="+")
     s.set_defaults(func=cmd_diagnose)
+
+    for module in EXTENSIONS:  # command groups that live with their subsystem
+        importlib.import_module(module).add_commands(sub, common)
 
     s = sub.add_parser("demo", parents=[common], help="the embedded demo (simulated drive, healthy then faulty)")
     s.add_argument("--seconds", type=float, default=60.0, help="wall-time limit, s (default 60)")
