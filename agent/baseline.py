@@ -2,7 +2,7 @@
 
 * Alg. 2: identify each healthy record, average the parameters (median with ``robust=True``).
 * Alg. 3: residual of phase a (measured minus free-run model current), windowed amplitude
-  spectrum, per-bin centre and spread over the m records; TH2 = centre + 2 spread,
+  spectrum of every window (``window_s``) of every record, per-bin centre and spread; TH2 = centre + 2 spread,
   TH3 = centre + 3 spread. Centre/spread are mean/standard deviation, or median/1.4826 MAD with
   ``robust=True`` so that one outlier record cannot hide a fault.
 * Alg. 4: per record the point (Ts/Lq, B_GT); the healthy region is an ellipse of Mahalanobis
@@ -38,16 +38,16 @@ def residual_phase_a(model: DQModel, sig: Signals) -> np.ndarray:
     return dq_to_abc(r_dq, sig.theta_e)[0]
 
 
-def window_spectrum(x: np.ndarray, rate_hz: float, window_s: float = WINDOW_S,
-                    f_max_hz: float = F_MAX_HZ) -> tuple[np.ndarray, np.ndarray]:
-    """Amplitude spectrum of ``x`` averaged over consecutive windows of ``window_s`` s, up to ``f_max_hz``."""
+def window_spectra(x: np.ndarray, rate_hz: float, window_s: float = WINDOW_S,
+                   f_max_hz: float = F_MAX_HZ) -> tuple[np.ndarray, np.ndarray]:
+    """Amplitude spectra (n_windows, bins) of ``x`` in consecutive windows of ``window_s`` s, up to ``f_max_hz``."""
     n_w = int(round(window_s * rate_hz))
     n_seg = x.size // n_w
     if n_seg < 1:
         raise ValueError(f"{x.size} samples are fewer than one window of {n_w}")
     freqs, amp = amplitude_spectrum(x[: n_seg * n_w].reshape(n_seg, n_w), rate_hz)
     keep = freqs <= f_max_hz
-    return freqs[keep], amp[:, keep].mean(axis=0)
+    return freqs[keep], amp[:, keep]
 
 
 def centre_spread(values: np.ndarray, robust: bool, axis: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -135,44 +135,87 @@ class Baseline:
     history: list[dict] = field(default_factory=list)
 
 
-def identify_baseline(records: list[Record], profile: DriveProfile, *, form: str = "lumped",
-                      robust: bool = False, window_s: float = WINDOW_S, confidence: float = 0.95,
-                      region: str = "prediction", prefilter_hz: float | None = PREFILTER_HZ,
-                      refine: bool = False, spectrum_rule: str = "pair", progress=None) -> Baseline:
-    """Algs. 2-4 on m healthy records; ``progress(i, m, text)`` is called per step when given."""
+class BaselineBuilder:
+    """Algs. 2-4 in two passes over healthy data, so records or streamed windows never need to be
+    held in memory together: pass 1 ``add_fit`` (parameters, cluster points), then ``model()``,
+    then pass 2 ``add_spectra`` (residual spectra of every window with that model), then ``build()``.
+    """
+
+    def __init__(self, profile: DriveProfile, *, form: str = "lumped", robust: bool = False,
+                 window_s: float = WINDOW_S, confidence: float = 0.95, region: str = "prediction",
+                 prefilter_hz: float | None = PREFILTER_HZ, spectrum_rule: str = "pair"):
+        self.profile = profile
+        self.settings = {"form": form, "robust": robust, "window_s": window_s, "prefilter_hz": prefilter_hz,
+                         "confidence": confidence, "region": region, "spectrum_rule": spectrum_rule}
+        self.fits: list[FitResult] = []
+        self.spectra: list[np.ndarray] = []
+        self.freqs: np.ndarray | None = None
+        self.sources: list[str] = []
+        self._model: DQModel | None = None
+
+    def add_fit(self, sig: Signals, source: str = "") -> FitResult:
+        """Pass 1: identify one healthy record or window (Alg. 2 lines 4-8, Alg. 4 lines 6-10)."""
+        fit = fit_record(sig, self.profile, self.settings["form"], prefilter_hz=self.settings["prefilter_hz"])
+        self.fits.append(fit)
+        self.sources.append(source)
+        return fit
+
+    def model(self) -> DQModel:
+        """The baseline model (Alg. 2 line 10) from the fits so far."""
+        if self._model is None:
+            if len(self.fits) < 4:
+                raise ValueError(f"need at least 4 healthy records, got {len(self.fits)}")
+            self._model = average_model(self.fits, self.settings["robust"], psi_m_prior(self.profile))
+        return self._model
+
+    def set_model(self, model: DQModel) -> None:
+        """Use ``model`` (e.g. refined, or with effects) for pass 2."""
+        self._model = model
+
+    def add_spectra(self, sig: Signals) -> None:
+        """Pass 2: residual spectra of every window of one record (Alg. 3 lines 3-9)."""
+        self.freqs, amp = window_spectra(residual_phase_a(self.model(), sig), self.profile.sampling.rate_hz,
+                                         self.settings["window_s"])
+        self.spectra.extend(amp)
+
+    def build(self) -> Baseline:
+        """Thresholds (Alg. 3 lines 10-13), cluster region (Alg. 4 line 12) and operating point."""
+        st = self.settings
+        centre, spread = centre_spread(envelope(np.array(self.spectra), SEARCH_BINS), st["robust"])
+        op_all = np.array([[f.operating_point["fe_hz"], f.operating_point["load_pct"]] for f in self.fits])
+        op = dict(zip(("fe_hz", "load_pct"), np.median(op_all, axis=0).tolist()))
+        op.update(fe_spread_hz=float(np.ptp(op_all[:, 0])), load_spread_pct=float(np.ptp(op_all[:, 1])))
+        return Baseline(
+            profile=self.profile, model=self.model(),
+            thresholds=Thresholds(self.freqs, centre, spread, st["window_s"], st["robust"]),
+            cluster=Cluster.fit(np.array([f.cluster_point for f in self.fits]), st["confidence"], st["region"],
+                                st["robust"]),
+            operating_point=op, records=list(self.sources),
+            settings={**st, "records": len(self.fits), "windows": len(self.spectra),
+                      "constrained_records": sum(f.constrained for f in self.fits)})
+
+
+def identify_baseline(records: list[Record], profile: DriveProfile, *, refine: bool = False, progress=None,
+                      **settings) -> Baseline:
+    """Algs. 2-4 on m healthy records (``settings``: see :class:`BaselineBuilder`); ``refine`` adds the
+    output-error refinement of the model; ``progress(i, n, text)`` is called per step when given."""
+    builder = BaselineBuilder(profile, **settings)
     m = len(records)
-    if m < 4:
-        raise ValueError(f"need at least 4 healthy records, got {m}")
-    sigs, fits = [], []
+    sigs = []
     for j, rec in enumerate(records):
         if progress:
             progress(j, 2 * m, f"identify {rec.source}")
-        sig = record_signals(rec, profile)
-        sigs.append(sig)
-        fits.append(fit_record(sig, profile, form, prefilter_hz=prefilter_hz))
-    model = average_model(fits, robust, psi_m_prior(profile))
+        sigs.append(record_signals(rec, profile))
+        builder.add_fit(sigs[-1], rec.source)
     if refine:
-        model = refine_output_error(model, sigs)
-    spectra = []
+        builder.set_model(refine_output_error(builder.model(), sigs))
     for j, (rec, sig) in enumerate(zip(records, sigs)):
         if progress:
             progress(m + j, 2 * m, f"residual spectrum {rec.source}")
-        freqs, amp = window_spectrum(residual_phase_a(model, sig), profile.sampling.rate_hz, window_s)
-        spectra.append(amp)
-    centre, spread = centre_spread(envelope(np.array(spectra), SEARCH_BINS), robust)
-    op_all = np.array([[f.operating_point["fe_hz"], f.operating_point["load_pct"]] for f in fits])
-    op = dict(zip(("fe_hz", "load_pct"), np.median(op_all, axis=0).tolist()))
-    op.update(fe_spread_hz=float(np.ptp(op_all[:, 0])), load_spread_pct=float(np.ptp(op_all[:, 1])))
-    return Baseline(
-        profile=profile, model=model,
-        thresholds=Thresholds(freqs, centre, spread, window_s, robust),
-        cluster=Cluster.fit(np.array([f.cluster_point for f in fits]), confidence, region, robust),
-        operating_point=op, records=[r.source for r in records],
-        settings={"form": form, "robust": robust, "window_s": window_s, "prefilter_hz": prefilter_hz,
-                  "confidence": confidence, "region": region, "refine": refine,
-                  "spectrum_rule": spectrum_rule,
-                  "constrained_records": sum(f.constrained for f in fits)},
-    )
+        builder.add_spectra(sig)
+    base = builder.build()
+    base.settings["refine"] = refine
+    return base
 
 
 def average_model(fits: list[FitResult], robust: bool = False, psi_m: float | None = None) -> DQModel:

@@ -1,7 +1,8 @@
 """FDI decision (paper Table 4): residual-spectrum levels at the fault frequencies and the
 parameter-cluster distance, combined into normal / caution / warning.
 
-* spectrum: a fault line above TH3 is a warning, above TH2 a caution. A transmission fault is a
+* spectrum: a fault line above TH3 is a warning, above TH2 a caution, in every window of the
+  record (a stationary fault persists; a noise excursion does not). A transmission fault is a
   periodic torque disturbance that modulates the speed, so it raises *both* sidebands fe - k f and
   fe + k f; with ``rule="pair"`` (default) a sideband pair counts at the lower of its two levels,
   which keeps the false-alarm rate of 2-sigma thresholds at many lines low (docs/method.md has the
@@ -16,9 +17,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agent.baseline import Baseline, residual_phase_a, window_spectrum
+from agent.baseline import Baseline, residual_phase_a, window_spectra
 from agent.frequencies import fault_frequencies
 from agent.identify import fit_record, record_signals
+from agent.model import Signals
 from agent.records import Record
 from agent.spectrum import nearest_bin, peak_near
 
@@ -50,9 +52,14 @@ class Diagnosis:
 
 
 def spectrum_peaks(baseline: Baseline, freqs: np.ndarray, amp: np.ndarray, fe_hz: float) -> list[dict]:
-    """Every fault line (family, k, both sidebands) with its magnitude, thresholds and level."""
+    """Every fault line (family, k, both sidebands) with its magnitude, thresholds and level.
+
+    ``amp`` is one spectrum (bins,) or one per window (n_windows, bins); with several windows a
+    line's level is the one it held in *every* window (persistence) and its magnitude the smallest.
+    """
     th = baseline.thresholds
     th2, th3 = th.th2, th.th3
+    amp = np.atleast_2d(amp)
     peaks = []
     for family, lines in fault_frequencies(baseline.profile, fe_hz, K_MAX).items():
         for line in lines:
@@ -60,10 +67,11 @@ def spectrum_peaks(baseline: Baseline, freqs: np.ndarray, amp: np.ndarray, fe_hz
                 continue
             _, f, mag = peak_near(freqs, amp, line["freq_hz"], th.search_bins)
             c = nearest_bin(freqs, line["freq_hz"])
-            level = "warning" if mag > th3[c] else "caution" if mag > th2[c] else "normal"
-            peaks.append({"freq_hz": round(f, 4), "family": family, "k": line["k"], "level": level,
-                          "magnitude": mag, "th2": float(th2[c]), "th3": float(th3[c]),
-                          "target_hz": round(line["freq_hz"], 4)})
+            weakest = int(np.argmin(mag))
+            level = "warning" if mag[weakest] > th3[c] else "caution" if mag[weakest] > th2[c] else "normal"
+            peaks.append({"freq_hz": round(float(f[weakest]), 4), "family": family, "k": line["k"],
+                          "level": level, "magnitude": float(mag[weakest]), "th2": float(th2[c]),
+                          "th3": float(th3[c]), "target_hz": round(line["freq_hz"], 4)})
     return peaks
 
 
@@ -88,25 +96,28 @@ def spectrum_decision(peaks: list[dict], rule: str = "pair") -> tuple[str, list[
 
 def diagnose(baseline: Baseline, record: Record) -> Diagnosis:
     """Table 4 decision for one record against a healthy baseline."""
+    return assess(baseline, record_signals(record, baseline.profile), record.source)
+
+
+def assess(baseline: Baseline, sig: Signals, source: str = "") -> Diagnosis:
+    """Table 4 decision for dq signals (a record or a streamed window) against a baseline."""
     profile = baseline.profile
-    sig = record_signals(record, profile)
     fit = fit_record(sig, profile, baseline.model.form, (baseline.model.extra_d, baseline.model.extra_q),
                      prefilter_hz=baseline.settings.get("prefilter_hz"))
     op = fit.operating_point
-    freqs, amp = window_spectrum(residual_phase_a(baseline.model, sig), profile.sampling.rate_hz,
-                                 baseline.thresholds.window_s, baseline.thresholds.freqs_hz[-1])
+    freqs, amp = window_spectra(residual_phase_a(baseline.model, sig), profile.sampling.rate_hz,
+                                baseline.thresholds.window_s, baseline.thresholds.freqs_hz[-1])
     peaks = spectrum_peaks(baseline, freqs, amp, op["fe_hz"])
     spectrum_state, flagged = spectrum_decision(peaks, baseline.settings.get("spectrum_rule", "pair"))
     point = fit.cluster_point
     d2 = baseline.cluster.distance2(point)
     cluster_state = "warning" if d2 > baseline.cluster.limit else "normal"
-    notes = operating_point_notes(baseline.operating_point, op)
     return Diagnosis(
-        record=record.source, state=worst(spectrum_state, cluster_state), spectrum_state=spectrum_state,
+        record=source, state=worst(spectrum_state, cluster_state), spectrum_state=spectrum_state,
         cluster_state=cluster_state, peaks=flagged,
         cluster={"ts_over_lq": float(point[0]), "b_gt": float(point[1]), "distance2": d2,
                  "limit": baseline.cluster.limit, "confidence": baseline.cluster.confidence},
-        operating_point=op, notes=notes)
+        operating_point=op, notes=operating_point_notes(baseline.operating_point, op))
 
 
 def operating_point_notes(model_op: dict, op: dict) -> list[str]:

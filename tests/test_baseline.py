@@ -7,7 +7,7 @@ import pytest
 import scipy.spatial.distance
 import scipy.stats
 
-from agent.baseline import Cluster, centre_spread, identify_baseline, window_spectrum
+from agent.baseline import Cluster, centre_spread, identify_baseline, window_spectra
 from agent.decision import diagnose, spectrum_decision
 from agent.errors import InputError
 from agent.modelfile import load_baseline, save_baseline, write_atomic
@@ -41,14 +41,15 @@ def test_one_outlier_record_hides_a_fault_from_mean_std_but_not_from_median_mad(
     assert fault > c + 3 * s  # median + 3 MAD-sigma: warning
 
 
-def test_window_spectrum_averages_windows():
+def test_window_spectra_one_per_window():
     fs = 1000.0
-    t = np.arange(4000) / fs
-    x = 0.3 * np.cos(2 * np.pi * 50 * t)
-    f, a = window_spectrum(x, fs, window_s=1.0, f_max_hz=200.0)
-    assert f[-1] == 200.0 and a[50] == pytest.approx(0.3, rel=1e-9)
+    t = np.arange(4500) / fs
+    x = 0.3 * np.cos(2 * np.pi * 50 * t) * (1 + (t >= 2.0))  # amplitude doubles in the third window
+    f, a = window_spectra(x, fs, window_s=1.0, f_max_hz=200.0)
+    assert f[-1] == 200.0 and a.shape == (4, 201)
+    np.testing.assert_allclose(a[:, 50], [0.3, 0.3, 0.6, 0.6], rtol=1e-9)
     with pytest.raises(ValueError, match="fewer than one window"):
-        window_spectrum(x[:900], fs, window_s=1.0)
+        window_spectra(x[:900], fs, window_s=1.0)
 
 
 def test_cluster_limits_and_distance():
