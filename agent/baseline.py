@@ -18,7 +18,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.stats
 
-from agent.frames import dq_to_abc
 from agent.identify import (PREFILTER_HZ, FitResult, constrain, fit_record, psi_m_prior, record_signals,
                             refine_output_error)
 from agent.model import DQModel, Signals
@@ -33,9 +32,24 @@ MAD_SCALE = 1.4826  #: MAD -> standard deviation for normal data
 
 
 def residual_phase_a(model: DQModel, sig: Signals) -> np.ndarray:
-    """Phase-a residual current r_a = i_a - i_a_model (A), free-run model (Alg. 3 lines 4-6)."""
-    r_dq = sig.i_dq - model.simulate(sig)
-    return dq_to_abc(r_dq, sig.theta_e)[0]
+    """Phase-a residual current r_a = i_a - i_a_model (A), free-run model (Alg. 3 lines 4-6):
+    the first row of the inverse Park and Clarke transforms, r_a = r_d cos(theta) - r_q sin(theta)."""
+    r_d, r_q = sig.i_dq - model.simulate(sig)
+    return r_d * np.cos(sig.theta_e) - r_q * np.sin(sig.theta_e)
+
+
+def residual_spectra(model: DQModel, sig: Signals, window_s: float = WINDOW_S,
+                     f_max_hz: float = F_MAX_HZ) -> tuple[np.ndarray, np.ndarray]:
+    """Phase-a residual amplitude spectra (n_windows, bins) of consecutive windows of ``window_s``.
+
+    The free-run simulation restarts from the measured current at each window's start, so a
+    window's spectrum depends on that window only: a record and a stream cut into the same windows
+    give the same spectra."""
+    n_w = int(round(window_s / sig.ts))
+    if sig.n < n_w:
+        raise ValueError(f"{sig.n} samples are fewer than one window of {n_w}")
+    parts = [residual_phase_a(model, sig.slice(j * n_w, (j + 1) * n_w)) for j in range(sig.n // n_w)]
+    return window_spectra(np.concatenate(parts), 1.0 / sig.ts, window_s, f_max_hz)
 
 
 def window_spectra(x: np.ndarray, rate_hz: float, window_s: float = WINDOW_S,
@@ -154,8 +168,13 @@ class BaselineBuilder:
         self._model: DQModel | None = None
 
     def add_fit(self, sig: Signals, source: str = "") -> FitResult:
-        """Pass 1: identify one healthy record or window (Alg. 2 lines 4-8, Alg. 4 lines 6-10)."""
-        fit = fit_record(sig, self.profile, self.settings["form"], prefilter_hz=self.settings["prefilter_hz"])
+        """Pass 1: identify one healthy record or window (Alg. 2 lines 4-8, Alg. 4 lines 6-10).
+        With a model set beforehand (``set_model``), the fit carries its form and extra terms, as
+        :func:`agent.decision.assess` does for the cluster point."""
+        m = self._model
+        extra = ((), ()) if m is None else (m.extra_d, m.extra_q)
+        fit = fit_record(sig, self.profile, self.settings["form"] if m is None else m.form, extra,
+                         prefilter_hz=self.settings["prefilter_hz"], plausible=False)
         self.fits.append(fit)
         self.sources.append(source)
         return fit
@@ -174,8 +193,11 @@ class BaselineBuilder:
 
     def add_spectra(self, sig: Signals) -> None:
         """Pass 2: residual spectra of every window of one record (Alg. 3 lines 3-9)."""
-        self.freqs, amp = window_spectra(residual_phase_a(self.model(), sig), self.profile.sampling.rate_hz,
-                                         self.settings["window_s"])
+        self.add_window_spectra(*residual_spectra(self.model(), sig, self.settings["window_s"]))
+
+    def add_window_spectra(self, freqs: np.ndarray, amp: np.ndarray) -> None:
+        """Pass 2 with spectra (n_windows, bins) computed elsewhere (the streaming pipeline)."""
+        self.freqs = freqs
         self.spectra.extend(amp)
 
     def build(self) -> Baseline:
@@ -192,14 +214,18 @@ class BaselineBuilder:
                                 st["robust"]),
             operating_point=op, records=list(self.sources),
             settings={**st, "records": len(self.fits), "windows": len(self.spectra),
-                      "constrained_records": sum(f.constrained for f in self.fits)})
+                      "implausible_records": sum(f.reason != "ok" for f in self.fits)})
 
 
 def identify_baseline(records: list[Record], profile: DriveProfile, *, refine: bool = False, progress=None,
-                      **settings) -> Baseline:
+                      model: DQModel | None = None, **settings) -> Baseline:
     """Algs. 2-4 on m healthy records (``settings``: see :class:`BaselineBuilder`); ``refine`` adds the
-    output-error refinement of the model; ``progress(i, n, text)`` is called per step when given."""
+    output-error refinement of the model; ``progress(i, n, text)`` is called per step when given.
+    ``model``: learn thresholds and cluster with this model (e.g. a workbench refit with effects)
+    instead of the average of the per-record fits."""
     builder = BaselineBuilder(profile, **settings)
+    if model is not None:
+        builder.set_model(model)
     m = len(records)
     sigs = []
     for j, rec in enumerate(records):
@@ -219,15 +245,25 @@ def identify_baseline(records: list[Record], profile: DriveProfile, *, refine: b
 
 
 def average_model(fits: list[FitResult], robust: bool = False, psi_m: float | None = None) -> DQModel:
-    """Alg. 2 line 10: the mean (or median) of the per-record parameters, kept plausible."""
-    agg = np.median if robust else np.mean
+    """Alg. 2 line 10, the baseline parameters from the per-record ones, kept plausible.
+
+    The mean is information-weighted, (sum R_j)^-1 sum R_j theta_j, which is least squares over
+    all records together: a record that barely excites a direction does not drag it. With
+    ``robust`` the per-record median is used instead (one outlier record cannot move it). An
+    implausible result is replaced by the nearest plausible one (:func:`agent.identify.constrain`).
+    """
     first = fits[0].model
-    fe = float(agg([f.model.fe_hz for f in fits]))
-    model = DQModel(first.form, first.ts, agg([f.model.theta_d for f in fits], axis=0),
-                    agg([f.model.theta_q for f in fits], axis=0), first.extra_d, first.extra_q, fe_hz=fe)
+    info_d, info_q = sum(f.info_d for f in fits), sum(f.info_q for f in fits)
+    if robust:
+        theta_d = np.median([f.model.theta_d for f in fits], axis=0)
+        theta_q = np.median([f.model.theta_q for f in fits], axis=0)
+    else:
+        theta_d = np.linalg.lstsq(info_d, sum(f.info_d @ f.model.theta_d for f in fits), rcond=None)[0]
+        theta_q = np.linalg.lstsq(info_q, sum(f.info_q @ f.model.theta_q for f in fits), rcond=None)[0]
+    fe = float(np.median([f.model.fe_hz for f in fits]))
+    model = DQModel(first.form, first.ts, theta_d, theta_q, first.extra_d, first.extra_q, fe_hz=fe)
     ok, reason = model.is_plausible()
     if not ok:
-        pooled = FitResult(model, np.zeros(2), sum(f.info_d for f in fits), sum(f.info_q for f in fits))
-        constrain(pooled, psi_m)
+        constrain(FitResult(model, np.zeros(2), info_d, info_q), psi_m)
         model.meta["constrained"] = reason
     return model

@@ -17,9 +17,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agent.baseline import Baseline, residual_phase_a, window_spectra
+from agent.baseline import Baseline, residual_spectra
 from agent.frequencies import fault_frequencies
-from agent.identify import fit_record, record_signals
+from agent.identify import cluster_point, operating_point, record_signals
 from agent.model import Signals
 from agent.records import Record
 from agent.spectrum import nearest_bin, peak_near
@@ -100,16 +100,18 @@ def diagnose(baseline: Baseline, record: Record) -> Diagnosis:
 
 
 def assess(baseline: Baseline, sig: Signals, source: str = "") -> Diagnosis:
-    """Table 4 decision for dq signals (a record or a streamed window) against a baseline."""
-    profile = baseline.profile
-    fit = fit_record(sig, profile, baseline.model.form, (baseline.model.extra_d, baseline.model.extra_q),
-                     prefilter_hz=baseline.settings.get("prefilter_hz"))
-    op = fit.operating_point
-    freqs, amp = window_spectra(residual_phase_a(baseline.model, sig), profile.sampling.rate_hz,
-                                baseline.thresholds.window_s, baseline.thresholds.freqs_hz[-1])
+    """Table 4 decision for dq signals (a record or a streamed span) against a baseline."""
+    m = baseline.model
+    point = cluster_point(sig, baseline.profile, m.form, m.extra_q, baseline.settings.get("prefilter_hz"))
+    freqs, amp = residual_spectra(m, sig, baseline.thresholds.window_s, baseline.thresholds.freqs_hz[-1])
+    return decide(baseline, freqs, amp, point, operating_point(sig, baseline.profile), source)
+
+
+def decide(baseline: Baseline, freqs: np.ndarray, amp: np.ndarray, point: np.ndarray, op: dict,
+           source: str = "") -> Diagnosis:
+    """Table 4 from the residual spectra of the windows (n_windows, bins) and the cluster point."""
     peaks = spectrum_peaks(baseline, freqs, amp, op["fe_hz"])
     spectrum_state, flagged = spectrum_decision(peaks, baseline.settings.get("spectrum_rule", "pair"))
-    point = fit.cluster_point
     d2 = baseline.cluster.distance2(point)
     cluster_state = "warning" if d2 > baseline.cluster.limit else "normal"
     return Diagnosis(

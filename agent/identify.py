@@ -41,12 +41,12 @@ def record_signals(record: Record, profile: DriveProfile) -> Signals:
         omega = record.omega_e if record.omega_e is not None else np.gradient(theta) * rate
     else:
         theta, omega = track(record.i_abc, rate, profile.rated_fe_hz)
-    return Signals.from_abc(record.v_abc, record.i_abc, theta, omega, 1.0 / rate)
+    return Signals.from_abc(record.v_abc, record.i_abc, theta, omega, 1.0 / rate, profile.motor.pole_pairs)
 
 
 def operating_point(sig: Signals, profile: DriveProfile) -> dict[str, float]:
     """Electrical frequency (Hz) and load (% of rated power, from eq. 10's P_in) of a record."""
-    p_in = float(np.mean(np.einsum("ij,ij->j", sig.v_abc, sig.i_abc)))
+    p_in = float(np.mean(sig.power))
     return {"fe_hz": float(np.mean(sig.omega_e) / (2 * np.pi)),
             "load_pct": 100.0 * p_in / profile.motor.rated_power_w}
 
@@ -78,12 +78,12 @@ def prefilter(columns: np.ndarray, rate_hz: float, cutoff_hz: float | None) -> n
     return scipy.signal.sosfilt(sos, columns, axis=0, zi=zi)[0]
 
 
-def fit_axes(sig: Signals, terms: tuple[tuple[Term, ...], tuple[Term, ...]],
-             prefilter_hz: float | None = PREFILTER_HZ) -> list[StreamingRLS]:
-    """One RLS per axis on the (prefiltered) regression i_x(k+1) = X(k) theta_x."""
+def fit_axes(sig: Signals, terms: tuple[tuple[Term, ...], ...], prefilter_hz: float | None = PREFILTER_HZ,
+             axes: tuple[int, ...] = (0, 1)) -> list[StreamingRLS]:
+    """One RLS per axis (0 d, 1 q) on the (prefiltered) regression i_x(k+1) = X(k) theta_x."""
     rate = 1.0 / sig.ts
     out = []
-    for axis, axis_terms in enumerate(terms):
+    for axis, axis_terms in zip(axes, terms):
         x = regressors(axis_terms, sig)[:-1]
         both = prefilter(np.column_stack((x, sig.i_dq[axis, 1:])), rate, prefilter_hz)
         rls = StreamingRLS(x.shape[1], lam=1.0, p0=1e6)
@@ -94,22 +94,38 @@ def fit_axes(sig: Signals, terms: tuple[tuple[Term, ...], tuple[Term, ...]],
 
 def fit_record(sig: Signals, profile: DriveProfile, form: str = "lumped",
                extra: tuple[tuple[Term, ...], tuple[Term, ...]] = ((), ()),
-               prefilter_hz: float | None = PREFILTER_HZ) -> FitResult:
-    """Identify the dq model (eqs. 13-14) and the torque model (eq. 15) of one record."""
+               prefilter_hz: float | None = PREFILTER_HZ, plausible: bool = True) -> FitResult:
+    """Identify the dq model (eqs. 13-14) and the torque model (eq. 15) of one record.
+
+    With ``plausible`` an implausible estimate is replaced by the closest plausible one
+    (:func:`constrain`); without, the raw RLS estimate is kept (the paper's Algs. 2 and 4 average
+    and cluster raw estimates) and ``FitResult.reason`` says what is implausible about it."""
     base_d, base_q = BASE_TERMS[form]
     rls_d, rls_q = fit_axes(sig, (base_d + extra[0], base_q + extra[1]), prefilter_hz)
     op = operating_point(sig, profile)
     model = DQModel(form, sig.ts, rls_d.theta, rls_q.theta, extra[0], extra[1], fe_hz=op["fe_hz"])
-    x_t, y_t = torque_regression(sig, profile.motor.pole_pairs, profile.torque_per_watt)
-    rls_t = StreamingRLS(2, lam=1.0, p0=1e6)
-    rls_t.update(x_t, y_t)
-    info_d, info_q = np.linalg.inv(rls_d.covariance), np.linalg.inv(rls_q.covariance)
-    fit = FitResult(model, rls_t.theta, info_d, info_q, operating_point=op)
-    ok, reason = model.is_plausible()
-    if not ok:
+    fit = FitResult(model, fit_torque(sig, profile), rls_d.information, rls_q.information, operating_point=op)
+    ok, fit.reason = model.is_plausible()
+    if not ok and plausible:
         constrain(fit, psi_m_prior(profile))
-        fit.constrained, fit.reason = True, reason
+        fit.constrained = True
     return fit
+
+
+def fit_torque(sig: Signals, profile: DriveProfile) -> np.ndarray:
+    """[K_GT (N m/rad), B_GT (N m s/rad)] of the torque regression (eq. 15) by RLS."""
+    x_t, y_t = torque_regression(sig, profile.motor.pole_pairs, profile.torque_per_watt)
+    rls = StreamingRLS(2, lam=1.0, p0=1e6)
+    rls.update(x_t, y_t)
+    return rls.theta
+
+
+def cluster_point(sig: Signals, profile: DriveProfile, form: str = "lumped", extra_q: tuple[Term, ...] = (),
+                  prefilter_hz: float | None = PREFILTER_HZ) -> np.ndarray:
+    """(Ts/Lq, B_GT) of Alg. 4 lines 7-9: the q-axis regression's input gain and the torque model's
+    friction term, without the d axis that the cluster does not use."""
+    (rls_q,) = fit_axes(sig, (BASE_TERMS[form][1] + tuple(extra_q),), prefilter_hz, axes=(1,))
+    return np.array([rls_q.theta[2], fit_torque(sig, profile)[1]])
 
 
 def psi_m_prior(profile: DriveProfile) -> float | None:

@@ -16,6 +16,11 @@ where a column is either a *state* term (a dq current, optionally multiplied by 
 
 Because state terms are explicit, the same parameters give the one-step predictor and the
 free-run simulation x(k+1) = (A0 + omega_e(k) A1) x(k) + u(k), compiled with numba.
+
+An *output* term (``Term(output=True)``, e.g. a current-sensor offset) acts on the measurement,
+not on the dynamics: the measured current is y(k) = x(k) + o(k) with o(k) = sum_j theta_j c_j(k)
+(A); the simulation starts from x(0) = y(0) - o(0) and returns y. In the one-step regression an
+output column enters as an ordinary column c_j(k) (an approximation used only by ``fit_record``).
 """
 
 from __future__ import annotations
@@ -42,13 +47,20 @@ class Signals:
     ts: float  #: sampling period, s
     i_abc: np.ndarray | None = None  #: (3, N) A, for effects that act per phase
     v_abc: np.ndarray | None = None  #: (3, N) V
+    pole_pairs: int | None = None  #: for effects tied to the shaft angle theta_e / p
+    p_in: np.ndarray | None = None  #: (N,) W, instantaneous input power v_a i_a + v_b i_b + v_c i_c
 
     @property
     def n(self) -> int:
         return self.omega_e.size
 
+    @property
+    def power(self) -> np.ndarray:
+        """Instantaneous electrical input power, W (eq. 10's P_in)."""
+        return self.p_in if self.p_in is not None else input_power(self.v_abc, self.i_abc)
+
     @classmethod
-    def from_abc(cls, v_abc, i_abc, theta_e, omega_e, ts) -> "Signals":
+    def from_abc(cls, v_abc, i_abc, theta_e, omega_e, ts, pole_pairs: int | None = None) -> "Signals":
         """Currents are samples at t_k; voltage sample k is the voltage held over [t_k, t_k + T_s)
         (the zero-order hold behind eq. 6), so it is rotated at the interval's mid angle
         theta_e + omega_e T_s / 2."""
@@ -56,24 +68,28 @@ class Signals:
         omega_e = np.asarray(omega_e, dtype=float)
         i_dq, _ = abc_to_dq(i_abc, theta_e)
         v_dq, _ = abc_to_dq(v_abc, theta_e + 0.5 * omega_e * ts)
-        return cls(i_dq, v_dq, theta_e, omega_e, ts, np.asarray(i_abc), np.asarray(v_abc))
+        return cls(i_dq, v_dq, theta_e, omega_e, ts, np.asarray(i_abc), np.asarray(v_abc), pole_pairs,
+                   input_power(v_abc, i_abc))
 
     def slice(self, start: int, stop: int) -> "Signals":
         cut = slice(start, stop)
         opt = lambda a: None if a is None else a[:, cut]  # noqa: E731
         return Signals(self.i_dq[:, cut], self.v_dq[:, cut], self.theta_e[cut], self.omega_e[cut], self.ts,
-                       opt(self.i_abc), opt(self.v_abc))
+                       opt(self.i_abc), opt(self.v_abc), self.pole_pairs,
+                       None if self.p_in is None else self.p_in[cut])
 
 
 @dataclass(frozen=True)
 class Term:
     """One regressor column. ``state`` = index of the dq current it multiplies (0 d, 1 q) or None for
-    an exogenous column given by ``exo(signals) -> (N,)``; ``speed`` multiplies by omega_e(k)."""
+    an exogenous column given by ``exo(signals) -> (N,)``; ``speed`` multiplies by omega_e(k);
+    ``output``: an exogenous column added to the measured current instead of the state equation."""
 
     name: str
     state: int | None = None
     speed: bool = False
     exo: Callable[[Signals], np.ndarray] | None = None
+    output: bool = False
 
     def column(self, sig: Signals) -> np.ndarray:
         base = sig.i_dq[self.state] if self.state is not None else self.exo(sig)
@@ -117,12 +133,20 @@ class DQModel:
         return base_d + self.extra_d, base_q + self.extra_q
 
     def one_step(self, sig: Signals) -> np.ndarray:
-        """One-step-ahead prediction (2, N); sample 0 is the measurement."""
-        out = np.empty_like(sig.i_dq)
-        out[:, 0] = sig.i_dq[:, 0]
-        for axis, (terms, theta) in enumerate(zip(self.terms, (self.theta_d, self.theta_q))):
-            out[axis, 1:] = (regressors(terms, sig) @ theta)[:-1]
-        return out
+        """One-step-ahead prediction (2, N); sample 0 is the measurement.
+        With output terms: y(k+1) = A(k) (y(k) - o(k)) + u(k) + o(k+1)."""
+        o = self.output(sig)
+        if o is None:
+            out = np.empty_like(sig.i_dq)
+            out[:, 0] = sig.i_dq[:, 0]
+            for axis, (terms, theta) in enumerate(zip(self.terms, (self.theta_d, self.theta_q))):
+                out[axis, 1:] = (regressors(terms, sig) @ theta)[:-1]
+            return out
+        a0, a1 = self.state_matrices()
+        x = sig.i_dq - o
+        w = sig.omega_e[:-1]
+        ax = np.einsum("ij,jk->ik", a0, x[:, :-1]) + w * np.einsum("ij,jk->ik", a1, x[:, :-1])
+        return np.hstack((sig.i_dq[:, :1], ax + self.exogenous(sig)[:, :-1] + o[:, 1:]))
 
     def state_matrices(self) -> tuple[np.ndarray, np.ndarray]:
         """(A0, A1): x(k+1) = (A0 + omega_e(k) A1) x(k) + u(k)."""
@@ -138,16 +162,30 @@ class DQModel:
         u = np.zeros((2, sig.n))
         for axis, (terms, theta) in enumerate(zip(self.terms, (self.theta_d, self.theta_q))):
             for term, value in zip(terms, theta):
-                if term.state is None:
+                if term.state is None and not term.output:
                     u[axis] += value * term.column(sig)
         return u
+
+    def output(self, sig: Signals) -> np.ndarray | None:
+        """o(k), (2, N): the output terms' contribution to the measured current (A), None without any."""
+        if not any(t.output for terms in self.terms for t in terms):
+            return None
+        o = np.zeros((2, sig.n))
+        for axis, (terms, theta) in enumerate(zip(self.terms, (self.theta_d, self.theta_q))):
+            for term, value in zip(terms, theta):
+                if term.output:
+                    o[axis] += value * term.column(sig)
+        return o
 
     def simulate(self, sig: Signals, x0: np.ndarray | None = None) -> np.ndarray:
         """Free-run simulation (2, N) driven by measured voltages and speed, from ``x0`` (default:
         the first measured current). Diverging output is returned as is (inf/NaN)."""
         a0, a1 = self.state_matrices()
         x0 = sig.i_dq[:, 0] if x0 is None else np.asarray(x0, dtype=float)
-        return _simulate_ltv(a0, a1, np.ascontiguousarray(sig.omega_e), self.exogenous(sig), x0)
+        o = self.output(sig)
+        if o is None:
+            return _simulate_ltv(a0, a1, np.ascontiguousarray(sig.omega_e), self.exogenous(sig), x0)
+        return _simulate_ltv(a0, a1, np.ascontiguousarray(sig.omega_e), self.exogenous(sig), x0 - o[:, 0]) + o
 
     def spectral_radius(self, omega_e: float) -> float:
         """Largest |eigenvalue| of the state matrix at speed ``omega_e`` (rad/s); < 1 means stable."""
@@ -177,10 +215,13 @@ class DQModel:
         }
 
     def is_plausible(self, omega_e: float | None = None) -> tuple[bool, str]:
-        """Positive R, L, psi_m and a stable free-run at ``omega_e`` (rad/s); returns (ok, reason)."""
+        """Positive R and L and a stable free-run at ``omega_e`` (rad/s); returns (ok, reason).
+
+        psi_m is not checked: at one steady operating point only Rs i_q + omega_e psi_m is
+        identifiable, so a fit may trade the two (see :meth:`physical`) while predicting well."""
         w = 2 * np.pi * self.fe_hz if omega_e is None else omega_e
         p = self.physical(w)
-        bad = [k for k in ("Rs_d", "Rs_q", "Ld", "Lq", "psi_m") if not (np.isfinite(p[k]) and p[k] > 0)]
+        bad = [k for k in ("Rs_d", "Rs_q", "Ld", "Lq") if not (np.isfinite(p[k]) and p[k] > 0)]
         if bad:
             return False, "non-positive " + ", ".join(bad)
         rho = self.spectral_radius(w)
@@ -236,7 +277,7 @@ def torque_regression(sig: Signals, pole_pairs: int, torque_per_watt: float) -> 
     then orthogonal to the constant omega_m, so K_GT takes the torque's drift over the record and
     B_GT the mean torque over speed, instead of the two trading off through an arbitrary origin.
     """
-    t_shaft = torque_per_watt * input_power(sig.v_abc, sig.i_abc)
+    t_shaft = torque_per_watt * sig.power
     theta_m = (sig.theta_e - np.mean(sig.theta_e)) / pole_pairs
     return np.column_stack((theta_m, sig.omega_e / pole_pairs)), t_shaft
 

@@ -80,7 +80,10 @@ def effect_terms(effects: list, source: str):
         from agent.effects import model_terms
     except ImportError:
         raise InputError(f"model uses effects {effects} but this build has no effect library", source=source) from None
-    return model_terms(effects)
+    try:
+        return model_terms(effects)
+    except InputError as err:
+        raise InputError(str(err), source=source) from None
 
 
 def save_baseline(b: Baseline, path: str | Path) -> Path:

@@ -36,6 +36,10 @@ from protocols.base import Block, DriveStatus
 log = logging.getLogger(__name__)
 
 
+#: rows of the window buffer: phase voltages and currents, angle (wrapped), speed, dq signals, power
+_ROWS = ("va", "vb", "vc", "ia", "ib", "ic", "theta_e", "omega_e", "i_d", "i_q", "v_d", "v_q", "p_in")
+
+
 @dataclass(frozen=True)
 class PipelineConfig:
     window_s: float = 2.0  #: analysis window, s (a baseline's thresholds are learned on this window)
@@ -58,7 +62,9 @@ class DriveMonitor:
         self.n_win = int(round(config.window_s * self.rate))
         self.n_hop = int(round(config.hop_s * self.rate))
         self.on_event = on_event or (lambda kind, detail: None)
-        self._buf = np.zeros((8, self.n_win))  # va vb vc ia ib ic theta omega, oldest first
+        # circular buffer, one row per signal (see _ROWS); each sample is transformed once, on arrival
+        self._buf = np.zeros((len(_ROWS), self.n_win))
+        self._write = 0
         self.pll = PLL(self.rate, profile.rated_fe_hz)
         self.status = DriveStatus(drive)
         self._raw_history: list[str] = []
@@ -84,11 +90,13 @@ class DriveMonitor:
         self._next_sample = block.first_sample + block.n
         self.last_input = time.monotonic()
         if block.theta_e is not None:
-            theta, omega = block.theta_e, block.omega_e if block.omega_e is not None else np.gradient(np.unwrap(block.theta_e)) * self.rate
+            theta = block.theta_e
+            omega = block.omega_e if block.omega_e is not None else np.gradient(np.unwrap(theta)) * self.rate
         else:
-            finite = np.nan_to_num(block.i_abc)
-            theta, omega = self.pll.process(finite)
-        data = np.vstack((block.v_abc, block.i_abc, theta[None, :], omega[None, :]))
+            theta, omega = self.pll.process(np.nan_to_num(block.i_abc))
+        sig = Signals.from_abc(block.v_abc, block.i_abc, theta, omega, 1.0 / self.rate)
+        data = np.vstack((block.v_abc, block.i_abc, np.mod(theta, 2 * np.pi)[None, :], omega[None, :],
+                          sig.i_dq, sig.v_dq, sig.p_in[None, :]))
         out, pos = [], 0
         while pos < block.n:
             take = min(block.n - pos, self.n_hop - self._since_hop)
@@ -102,12 +110,15 @@ class DriveMonitor:
         return out
 
     def _push(self, chunk: np.ndarray) -> None:
-        n = chunk.shape[1]
-        if n >= self.n_win:
-            self._buf[:] = chunk[:, -self.n_win:]
+        n = chunk.shape[1]  # <= n_hop <= n_win
+        end = self._write + n
+        if end <= self.n_win:
+            self._buf[:, self._write:end] = chunk
         else:
-            self._buf[:, :-n] = self._buf[:, n:]
-            self._buf[:, -n:] = chunk
+            split = self.n_win - self._write
+            self._buf[:, self._write:] = chunk[:, :split]
+            self._buf[:, :n - split] = chunk[:, split:]
+        self._write = end % self.n_win
         self._filled = min(self.n_win, self._filled + n)
 
     def tick(self, now: float | None = None) -> DriveStatus | None:
@@ -119,11 +130,13 @@ class DriveMonitor:
 
     # -- decisions ------------------------------------------------------------------------------
     def _window_signals(self) -> Signals | None:
-        b = self._buf
+        """The last window, oldest sample first; None if it holds NaN or saturated samples."""
+        b = np.roll(self._buf, -self._write, axis=1) if self._write else self._buf
         if not np.isfinite(b).all() or np.abs(b[3:6]).max() >= self.config.max_current_a \
                 or np.abs(b[0:3]).max() >= self.config.max_voltage_v:
             return None
-        return Signals.from_abc(b[0:3], b[3:6], b[6], b[7], 1.0 / self.rate)
+        return Signals(b[8:10], b[10:12], np.unwrap(b[6]), b[7], 1.0 / self.rate, b[3:6], b[0:3],
+                       self.profile.motor.pole_pairs, b[12])
 
     def _assess_window(self) -> DriveStatus:
         sig = self._window_signals()

@@ -173,6 +173,11 @@ class StreamingRLS:
         return self._theta.copy()
 
     @property
+    def information(self) -> np.ndarray:
+        """R = P^-1, the information matrix (inverse covariance); finite even when P is not."""
+        return np.ldexp(self._R, self._e)
+
+    @property
     def covariance(self) -> np.ndarray:
         """P = R^-1, units 1/(W x^2); with W = 1/sigma_y^2 it is the covariance of theta.
 

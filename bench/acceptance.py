@@ -92,7 +92,7 @@ def table5(n_train=8, n_test=4, seconds=2.0, say=print) -> dict:
 
 
 def run(quick: bool = False, say=print) -> dict:
-    n = dict(n_healthy=12, n_faulty=8, n_fresh=20, seconds=2.0, window_s=1.0) if quick else {}
+    n = dict(n_healthy=12, n_faulty=8, n_fresh=30, seconds=2.0, window_s=1.0) if quick else {}
     t0 = time.perf_counter()
     result = {kind: table4(kind, say=say, **n) for kind in ("gear", "chain")}
     result["table5"] = table5(**(dict(n_train=6, n_test=3) if quick else {}), say=say)

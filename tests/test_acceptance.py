@@ -21,8 +21,11 @@ def test_table4_pattern(result, kind, condition):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", list(TABLE4))
-def test_fresh_healthy_records_are_normal(result, kind):
-    assert result[kind]["fresh_normal_fraction"] >= 0.95, result[kind]["fresh_states"]
+def test_fresh_healthy_records_are_normal(result, kind, full_form):
+    # The full form (40 fresh records) must meet the 95 % target. The short form has 30: the
+    # decision's false-alarm rate is ~4 % (docs/method.md), so one false alarm more or less is
+    # sampling luck there, and its bound is 90 %.
+    assert result[kind]["fresh_normal_fraction"] >= (0.95 if full_form else 0.90), result[kind]["fresh_states"]
 
 
 @pytest.mark.slow
