@@ -1,19 +1,25 @@
 """Streaming pipeline of one drive: blocks -> angle -> window -> model -> residual spectrum and
 parameter cluster -> decision -> alarm state, with fixed memory.
 
-Every ``hop_s`` the last ``window_s`` of samples (a ring buffer) is assessed against the baseline
-scheduled for the window's operating point (:mod:`agent.library`), exactly as ``diagnose`` assesses
-a record. Around the per-window decision:
+Every ``hop_s`` the last *span* of ``span_windows`` x ``window_s`` samples (a ring buffer) is
+assessed against the baseline scheduled for its operating point (:mod:`agent.library`), exactly as
+``diagnose`` assesses a record of that length: residual spectra of each window (a fault line must
+persist in all of them), the parameter-cluster point of the whole span. Each window's spectrum is
+computed once, when the window completes, and reused by the later spans that contain it.
 
-* persistence: a level is raised only when ``persist_windows`` consecutive windows reach it;
-* hold: a raised level is kept until lower windows have lasted ``alarm_hold_s`` (no chattering);
+Around the span decision:
+
+* hold: a raised level is kept until lower decisions have lasted ``alarm_hold_s`` (no chattering);
 * quality: ``no_model`` outside every baseline (no alarm), ``learning`` while a baseline is being
-  learned, ``bad_input`` for a window with NaN or saturated samples, ``stale`` when input stops
+  learned, ``bad_input`` for a span with NaN or saturated samples, ``stale`` when input stops
   (:meth:`DriveMonitor.tick`), else ``good``. The last values are kept in every case.
 
-Learning (commissioning) runs the baseline's two passes on streamed windows
-(:class:`agent.baseline.BaselineBuilder`): ``learn_windows`` windows for the parameters, then as
-many for the residual-spectrum thresholds, then the baseline is written to the library.
+Latency: a fault that starts at t0 fills a whole span by t0 + span + hop at the latest.
+
+Learning (commissioning) runs the baseline's two passes on the stream
+(:class:`agent.baseline.BaselineBuilder`): ``learn_windows`` non-overlapping spans for the
+parameters and cluster, then as many windows for the residual-spectrum thresholds; the baseline
+is then written to the library (atomically) and scheduled.
 """
 
 from __future__ import annotations
@@ -24,11 +30,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agent.baseline import BaselineBuilder
-from agent.decision import STATES, assess
-from agent.identify import operating_point
+from agent.baseline import BaselineBuilder, residual_spectra
+from agent.decision import STATES, decide
+from agent.frames import abc_to_dq
+from agent.identify import cluster_point, operating_point
 from agent.library import ModelLibrary
-from agent.model import Signals
+from agent.model import Signals, input_power
 from agent.pll import PLL
 from agent.profile import DriveProfile
 from protocols.base import Block, DriveStatus
@@ -36,38 +43,43 @@ from protocols.base import Block, DriveStatus
 log = logging.getLogger(__name__)
 
 
+_THETA_LIMIT = 2.0**20  #: rad; the buffered angle is kept below this
 #: rows of the window buffer: phase voltages and currents, angle (wrapped), speed, dq signals, power
 _ROWS = ("va", "vb", "vc", "ia", "ib", "ic", "theta_e", "omega_e", "i_d", "i_q", "v_d", "v_q", "p_in")
 
 
 @dataclass(frozen=True)
 class PipelineConfig:
-    window_s: float = 2.0  #: analysis window, s (a baseline's thresholds are learned on this window)
-    hop_s: float = 0.5  #: a decision every hop, s
-    persist_windows: int = 2  #: consecutive windows needed to raise a level
+    window_s: float = 2.0  #: residual-spectrum window, s (a baseline's thresholds are learned on it)
+    span_windows: int = 2  #: windows per assessment (a record of this length offline)
+    hop_s: float = 1.0  #: an assessment every hop, s (divides window_s)
     alarm_hold_s: float = 10.0  #: a raised level drops only after this long below it, s
     stale_after_s: float = 3.0  #: no input for this long -> quality "stale", s
-    learn_windows: int = 30  #: windows per learning pass (two passes)
+    learn_windows: int = 30  #: spans (parameters) and windows (thresholds) to learn a baseline
     max_current_a: float = float("inf")  #: |i| at or above this is saturation -> bad input
     max_voltage_v: float = float("inf")
+
+    def __post_init__(self):
+        ratio = self.window_s / self.hop_s
+        if self.hop_s <= 0 or abs(ratio - round(ratio)) > 1e-9 or self.span_windows < 1:
+            raise ValueError("pipeline: hop_s must divide window_s, span_windows >= 1")
 
 
 class DriveMonitor:
     """The pipeline of one drive; ``process(block)`` returns a status per completed hop."""
 
-    def __init__(self, drive: str, profile: DriveProfile, library: ModelLibrary, config: PipelineConfig = PipelineConfig(),
-                 on_event=None):
+    def __init__(self, drive: str, profile: DriveProfile, library: ModelLibrary,
+                 config: PipelineConfig = PipelineConfig(), on_event=None):
         self.drive, self.profile, self.library, self.config = drive, profile, library, config
         self.rate = profile.sampling.rate_hz
         self.n_win = int(round(config.window_s * self.rate))
         self.n_hop = int(round(config.hop_s * self.rate))
+        self.n_span = self.n_win * config.span_windows
         self.on_event = on_event or (lambda kind, detail: None)
-        # circular buffer, one row per signal (see _ROWS); each sample is transformed once, on arrival
-        self._buf = np.zeros((len(_ROWS), self.n_win))
-        self._write = 0
+        # circular buffer, one row per signal (_ROWS); each sample is transformed once, on arrival
+        self._buf = np.zeros((len(_ROWS), self.n_span))
         self.pll = PLL(self.rate, profile.rated_fe_hz)
         self.status = DriveStatus(drive)
-        self._raw_history: list[str] = []
         self._below_since: float | None = None
         self._builder: BaselineBuilder | None = None
         self._learn_name = ""
@@ -76,14 +88,19 @@ class DriveMonitor:
     # -- stream ---------------------------------------------------------------------------------
     def reset_stream(self) -> None:
         """Forget buffered samples (start, gap in the stream)."""
+        self._write = 0
         self._filled = 0
         self._since_hop = 0
+        self._samples = 0  # samples since the stream (re)started
         self._next_sample: int | None = None
+        self._theta_last = 0.0
+        self._bad_until = 0  # stream sample until which spans contain NaN or saturated samples
+        self._spectra: dict[tuple[str, int], np.ndarray] = {}  # (model, window end sample) -> spectrum
         self.pll.reset()
         self.last_input = time.monotonic()
 
     def process(self, block: Block) -> list[DriveStatus]:
-        """Append a block; every ``hop_s`` of new samples assess the last window."""
+        """Append a block; every ``hop_s`` of new samples assess the last span."""
         if self._next_sample is not None and block.first_sample != self._next_sample:
             self.on_event("gap", {"expected": self._next_sample, "got": block.first_sample})
             self.reset_stream()
@@ -94,9 +111,22 @@ class DriveMonitor:
             omega = block.omega_e if block.omega_e is not None else np.gradient(np.unwrap(theta)) * self.rate
         else:
             theta, omega = self.pll.process(np.nan_to_num(block.i_abc))
-        sig = Signals.from_abc(block.v_abc, block.i_abc, theta, omega, 1.0 / self.rate)
-        data = np.vstack((block.v_abc, block.i_abc, np.mod(theta, 2 * np.pi)[None, :], omega[None, :],
-                          sig.i_dq, sig.v_dq, sig.p_in[None, :]))
+        # continuous angle across blocks (Signals wants it unwrapped); kept below 2^20 rad by
+        # shifting the whole buffer by whole turns, which changes no cosine and no difference
+        theta = np.unwrap(np.concatenate(([self._theta_last], theta)))[1:]
+        if theta[-1] > _THETA_LIMIT:
+            turns = 2 * np.pi * np.floor(theta[0] / (2 * np.pi))
+            theta = theta - turns
+            self._buf[6] -= turns
+        self._theta_last = theta[-1]
+        if not (np.isfinite(block.v_abc).all() and np.isfinite(block.i_abc).all()) \
+                or np.abs(np.nan_to_num(block.i_abc)).max() >= self.config.max_current_a \
+                or np.abs(np.nan_to_num(block.v_abc)).max() >= self.config.max_voltage_v:
+            self._bad_until = self._samples + block.n + self.n_span  # spans containing this block are bad
+        i_dq, _ = abc_to_dq(block.i_abc, theta)
+        v_dq, _ = abc_to_dq(block.v_abc, theta + 0.5 * omega / self.rate)  # ZOH voltage, see Signals
+        data = np.vstack((block.v_abc, block.i_abc, theta[None, :], omega[None, :], i_dq, v_dq,
+                          input_power(block.v_abc, block.i_abc)[None, :]))
         out, pos = [], 0
         while pos < block.n:
             take = min(block.n - pos, self.n_hop - self._since_hop)
@@ -105,21 +135,23 @@ class DriveMonitor:
             self._since_hop += take
             if self._since_hop == self.n_hop:
                 self._since_hop = 0
-                if self._filled >= self.n_win:
-                    out.append(self._assess_window())
+                status = self._hop()
+                if status is not None:
+                    out.append(status)
         return out
 
     def _push(self, chunk: np.ndarray) -> None:
-        n = chunk.shape[1]  # <= n_hop <= n_win
+        n = chunk.shape[1]  # <= n_hop <= n_span
         end = self._write + n
-        if end <= self.n_win:
+        if end <= self.n_span:
             self._buf[:, self._write:end] = chunk
         else:
-            split = self.n_win - self._write
+            split = self.n_span - self._write
             self._buf[:, self._write:] = chunk[:, :split]
             self._buf[:, :n - split] = chunk[:, split:]
-        self._write = end % self.n_win
-        self._filled = min(self.n_win, self._filled + n)
+        self._write = end % self.n_span
+        self._filled = min(self.n_span, self._filled + n)
+        self._samples += n
 
     def tick(self, now: float | None = None) -> DriveStatus | None:
         """Call periodically: after ``stale_after_s`` without input the quality becomes ``stale``."""
@@ -129,17 +161,38 @@ class DriveMonitor:
         return None
 
     # -- decisions ------------------------------------------------------------------------------
-    def _window_signals(self) -> Signals | None:
-        """The last window, oldest sample first; None if it holds NaN or saturated samples."""
-        b = np.roll(self._buf, -self._write, axis=1) if self._write else self._buf
-        if not np.isfinite(b).all() or np.abs(b[3:6]).max() >= self.config.max_current_a \
-                or np.abs(b[0:3]).max() >= self.config.max_voltage_v:
+    def _signals(self, n: int) -> Signals | None:
+        """The last ``n`` samples, oldest first; None if they hold NaN or saturated samples."""
+        if self._samples < self._bad_until - self.n_span + n:
             return None
-        return Signals(b[8:10], b[10:12], np.unwrap(b[6]), b[7], 1.0 / self.rate, b[3:6], b[0:3],
+        start = (self._write - n) % self.n_span
+        b = self._buf[:, start:start + n] if start + n <= self.n_span else \
+            np.concatenate((self._buf[:, start:], self._buf[:, :start + n - self.n_span]), axis=1)
+        return Signals(b[8:10], b[10:12], b[6], b[7], 1.0 / self.rate, b[3:6], b[0:3],
                        self.profile.motor.pole_pairs, b[12])
 
-    def _assess_window(self) -> DriveStatus:
-        sig = self._window_signals()
+    def _window_spectrum(self, name: str, end: int) -> np.ndarray | None:
+        """Residual spectrum of the window ending at stream sample ``end`` (cached)."""
+        key = (name, end)
+        if key not in self._spectra:
+            back = self._samples - end
+            if back + self.n_win > self._filled:
+                return None
+            sig = self._signals(self.n_win + back)
+            if sig is None:
+                return None
+            base = self.library.baselines[name]
+            part = sig.slice(0, self.n_win)
+            self._spectra[key] = residual_spectra(base.model, part, base.thresholds.window_s,
+                                                  base.thresholds.freqs_hz[-1])[1][0]
+            for old in [k for k in self._spectra if k[1] <= self._samples - self.n_span]:
+                del self._spectra[old]
+        return self._spectra[key]
+
+    def _hop(self) -> DriveStatus | None:
+        if self._filled < self.n_span:
+            return None
+        sig = self._signals(self.n_span)
         if sig is None:
             return self._set(quality="bad_input")
         op = operating_point(sig, self.profile)
@@ -147,36 +200,33 @@ class DriveMonitor:
             return self._learn(sig, op)
         name = self.library.select(op["fe_hz"], op["load_pct"], self.status.model or None)
         if name is None:
-            self._raw_history.clear()
             return self._set(quality="no_model", model="", state="normal", spectrum_state="normal",
                              cluster_state="normal", fe_hz=op["fe_hz"], load_pct=op["load_pct"], peaks=[])
-        d = assess(self.library.baselines[name], sig, self.drive)
-        state = self._filter(d.state)
-        return self._set(quality="good", model=name, state=state, spectrum_state=d.spectrum_state,
+        base = self.library.baselines[name]
+        ends = [self._samples - j * self.n_win for j in range(self.config.span_windows - 1, -1, -1)]
+        spectra = [self._window_spectrum(name, e) for e in ends]
+        if any(s is None for s in spectra):
+            return self._set(quality="bad_input")
+        m = base.model
+        point = cluster_point(sig, self.profile, m.form, m.extra_q, base.settings.get("prefilter_hz"))
+        freqs = base.thresholds.freqs_hz
+        d = decide(base, freqs, np.array(spectra), point, op, self.drive)
+        return self._set(quality="good", model=name, state=self._hold(d.state), spectrum_state=d.spectrum_state,
                          cluster_state=d.cluster_state, fe_hz=op["fe_hz"], load_pct=op["load_pct"],
                          peaks=d.peaks, cluster_distance2=d.cluster["distance2"])
 
-    def _filter(self, raw: str) -> str:
-        """Persistence to raise a level, hold time to lower it."""
-        cfg = self.config
-        self._raw_history = (self._raw_history + [raw])[-cfg.persist_windows:]
+    def _hold(self, raw: str) -> str:
+        """Raise at once; lower only after ``alarm_hold_s`` of lower decisions (stream time)."""
         held = self.status.state if self.status.quality == "good" else "normal"
-        reached = min(self._raw_history, key=STATES.index) if len(self._raw_history) == cfg.persist_windows else "normal"
-        if STATES.index(reached) > STATES.index(held):
+        if STATES.index(raw) >= STATES.index(held):
             self._below_since = None
-            return reached
-        if STATES.index(raw) < STATES.index(held):
-            now = self._stream_time()
-            self._below_since = self._below_since if self._below_since is not None else now
-            if now - self._below_since >= cfg.alarm_hold_s:
-                self._below_since = None
-                return max(raw, reached, key=STATES.index)
-            return held
-        self._below_since = None
+            return raw
+        now = self._samples / self.rate
+        self._below_since = now if self._below_since is None else self._below_since
+        if now - self._below_since >= self.config.alarm_hold_s:
+            self._below_since = None
+            return raw
         return held
-
-    def _stream_time(self) -> float:
-        return (self._next_sample or 0) / self.rate
 
     def _set(self, **changes) -> DriveStatus:
         old = self.status
@@ -190,10 +240,10 @@ class DriveMonitor:
 
     # -- learning -------------------------------------------------------------------------------
     def start_learning(self, name: str, **settings) -> None:
-        """Learn a baseline named ``name`` from the next 2 x ``learn_windows`` healthy windows."""
+        """Learn a baseline named ``name`` from the stream (see the module docstring)."""
         self._builder = BaselineBuilder(self.profile, window_s=self.config.window_s, **settings)
         self._learn_name = name
-        self._learn_skip = 0
+        self._learn_mark = self._samples
         self.on_event("learning", {"name": name, "phase": "parameters"})
 
     @property
@@ -202,21 +252,21 @@ class DriveMonitor:
 
     def _learn(self, sig: Signals, op: dict) -> DriveStatus:
         b, n = self._builder, self.config.learn_windows
-        stride = max(1, self.n_win // self.n_hop)  # non-overlapping windows for the statistics
-        self._learn_skip = (self._learn_skip + 1) % stride
-        if self._learn_skip == 0:
-            if len(b.fits) < n:
-                b.add_fit(sig, f"{self.drive}@window{self.status.window}")
+        if len(b.fits) < n:
+            if self._samples - self._learn_mark >= self.n_span:  # non-overlapping spans
+                self._learn_mark = self._samples
+                b.add_fit(sig, f"{self.drive}@{self._samples}")
                 if len(b.fits) == n:
                     self.on_event("learning", {"name": self._learn_name, "phase": "thresholds"})
-            else:
-                b.add_spectra(sig)
-                if len(b.spectra) >= n:
-                    baseline = b.build()
-                    path = self.library.add(self._learn_name, baseline)
-                    self._builder = None
-                    self.on_event("learned", {"name": self._learn_name, "path": str(path),
-                                              "operating_point": baseline.operating_point})
+        elif self._samples - self._learn_mark >= self.n_win:  # non-overlapping windows
+            self._learn_mark = self._samples
+            b.add_spectra(sig.slice(self.n_span - self.n_win, self.n_span))
+            if len(b.spectra) >= n:
+                baseline = b.build()
+                path = self.library.add(self._learn_name, baseline)
+                self._builder = None
+                self.on_event("learned", {"name": self._learn_name, "path": str(path),
+                                          "operating_point": baseline.operating_point})
         return self._set(quality="learning" if self._builder else "good", state="normal",
                          spectrum_state="normal", cluster_state="normal", fe_hz=op["fe_hz"],
                          load_pct=op["load_pct"], peaks=[])

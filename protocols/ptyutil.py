@@ -1,0 +1,154 @@
+"""Pseudo-terminals as serial-port doubles (Linux/POSIX): a device end, a null-modem cable, a
+hot-pluggable port.
+
+* :class:`Pty`: ``os.openpty()`` in raw mode. Bytes written to ``master`` come out of the
+  serial port at ``path`` (what ``serial.serial_for_url(path)`` opens) and the other way round.
+  The pty keeps its own slave fd open so the master never sees EIO while no client is attached.
+* :class:`NullModem`: two ptys joined by a byte-copy thread, so two programs that both open a
+  serial *path* (a device emulator and the agent) talk to each other, like socat's pty pair.
+* :class:`PluggablePort`: a stable symlink (like ``/dev/serial/by-id/...``) to a pty that can be
+  unplugged (pty closed, link removed: the client's reads fail with EIO) and replugged (a new
+  pty behind the same link).
+
+A pty's buffer is small (about 4 KiB): write to it in chunks from a thread that does not also
+read the other side (:func:`write_all` does the chunking with ``select``).
+"""
+
+from __future__ import annotations
+
+import os
+import select
+import threading
+import tty
+from pathlib import Path
+
+
+def write_all(fd: int, data: bytes, stop: threading.Event | None = None, chunk: int = 256,
+              poll_s: float = 0.05) -> int:
+    """Write ``data`` to the non-blocking or blocking ``fd`` in ``chunk``-byte pieces, waiting for
+    writability with ``select``; returns the bytes written (short only when ``stop`` was set).
+    Raises ``OSError`` when the fd fails (e.g. EIO after the other end vanished)."""
+    view = memoryview(data)
+    done = 0
+    while done < len(view):
+        if stop is not None and stop.is_set():
+            break
+        _, w, _ = select.select([], [fd], [], poll_s)
+        if not w:
+            continue
+        try:
+            done += os.write(fd, view[done:done + chunk])
+        except BlockingIOError:
+            continue
+    return done
+
+
+class Pty:
+    """A raw-mode pseudo-terminal: ``master`` fd (device side, non-blocking), serial ``path``."""
+
+    def __init__(self) -> None:
+        self.master, self._slave = os.openpty()
+        tty.setraw(self._slave)  # before any client: no echo, no CR/LF translation, no line buffering
+        os.set_blocking(self.master, False)
+        self.path = os.ttyname(self._slave)
+        self.closed = False
+
+    def close(self) -> None:
+        """Close both ends (safe twice): clients of ``path`` get EIO on their next read."""
+        if self.closed:
+            return
+        self.closed = True
+        for fd in (self.master, self._slave):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+
+    def __enter__(self) -> Pty:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class NullModem:
+    """Two ptys cross-connected by a copy thread: a client of ``path_a`` talks to one of ``path_b``."""
+
+    def __init__(self, chunk: int = 1024) -> None:
+        self.a, self.b = Pty(), Pty()
+        self.chunk = chunk
+        self._stop = threading.Event()
+        self.bytes_copied = 0
+        self._thread = threading.Thread(target=self._run, name="null-modem", daemon=True)
+        self._thread.start()
+
+    @property
+    def path_a(self) -> str:
+        return self.a.path
+
+    @property
+    def path_b(self) -> str:
+        return self.b.path
+
+    def _run(self) -> None:
+        peer = {self.a.master: self.b.master, self.b.master: self.a.master}
+        try:
+            while not self._stop.is_set():
+                r, _, _ = select.select(list(peer), [], [], 0.05)
+                for fd in r:
+                    try:
+                        data = os.read(fd, self.chunk)
+                    except BlockingIOError:
+                        continue
+                    self.bytes_copied += write_all(peer[fd], data, self._stop)
+        except (OSError, ValueError):  # a pty was closed under us
+            pass
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2.0)
+        self.a.close()
+        self.b.close()
+
+    def __enter__(self) -> NullModem:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class PluggablePort:
+    """A symlink ``link`` to a :class:`Pty` that can be unplugged and plugged in again."""
+
+    def __init__(self, link: str | Path) -> None:
+        self.link = Path(link)
+        self.pty: Pty | None = None
+        self.plug()
+
+    @property
+    def path(self) -> str:
+        return str(self.link)
+
+    @property
+    def master(self) -> int:
+        if self.pty is None:
+            raise OSError("port is unplugged")
+        return self.pty.master
+
+    def plug(self) -> Pty:
+        """A new pty behind ``link`` (unplugs the old one first)."""
+        self.unplug()
+        self.pty = Pty()
+        tmp = self.link.with_name(self.link.name + ".tmp")
+        tmp.unlink(missing_ok=True)
+        tmp.symlink_to(self.pty.path)
+        os.replace(tmp, self.link)
+        return self.pty
+
+    def unplug(self) -> None:
+        self.link.unlink(missing_ok=True)
+        if self.pty is not None:
+            self.pty.close()
+            self.pty = None
+
+    close = unplug
