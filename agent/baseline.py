@@ -16,7 +16,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.stats
 
 from agent.identify import (PREFILTER_HZ, FitResult, constrain, fit_record, psi_m_prior, record_signals,
                             refine_output_error)
@@ -122,17 +121,33 @@ class Cluster:
         if robust:  # one reweighting step from median/MAD: drop points far outside, refit
             med, mad = centre_spread(points, robust=True)
             z2 = np.sum(((points - med) / np.where(mad > 0, mad, 1.0)) ** 2, axis=1)
-            inliers = points[z2 <= scipy.stats.chi2.ppf(0.975, p)]
+            inliers = points[z2 <= chi2_quantile(0.975, p)]
             if len(inliers) > p + 1:
                 centre, cov = inliers.mean(axis=0), np.cov(inliers, rowvar=False)
         cov = cov + np.eye(p) * 1e-12 * np.trace(cov)
         if region == "chi2":
-            limit = scipy.stats.chi2.ppf(confidence, p)
+            limit = chi2_quantile(confidence, p)
         elif region == "prediction":
-            limit = p * (m - 1) * (m + 1) / (m * (m - p)) * scipy.stats.f.ppf(confidence, p, m - p)
+            limit = p * (m - 1) * (m + 1) / (m * (m - p)) * f_quantile(confidence, p, m - p)
         else:
             raise ValueError(f"unknown cluster region {region!r} (prediction, chi2)")
         return cls(points, centre, cov, float(limit), confidence, region)
+
+
+def chi2_quantile(q: float, dof: int) -> float:
+    """Chi-square quantile; closed form for 2 degrees of freedom (the cluster's), scipy otherwise."""
+    if dof == 2:
+        return -2.0 * np.log1p(-q)
+    import scipy.stats  # noqa: PLC0415 (heavy; only for other dimensions)
+    return float(scipy.stats.chi2.ppf(q, dof))
+
+
+def f_quantile(q: float, dfn: int, dfd: int) -> float:
+    """F-distribution quantile; closed form for dfn = 2: F = (dfd/2) ((1-q)^(-2/dfd) - 1)."""
+    if dfn == 2:
+        return dfd / 2.0 * ((1.0 - q) ** (-2.0 / dfd) - 1.0)
+    import scipy.stats  # noqa: PLC0415
+    return float(scipy.stats.f.ppf(q, dfn, dfd))
 
 
 @dataclass

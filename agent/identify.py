@@ -20,8 +20,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.optimize
-import scipy.signal
 
 from agent.model import BASE_TERMS, DQModel, Signals, Term, lumped_params, regressors, torque_regression
 from agent.pll import track
@@ -73,6 +71,8 @@ def prefilter(columns: np.ndarray, rate_hz: float, cutoff_hz: float | None) -> n
     """Low-pass every column (N, m) with the same Butterworth filter, started at the first row's value."""
     if cutoff_hz is None:
         return columns
+    import scipy.signal  # noqa: PLC0415 (heavy; the default path has no prefilter)
+
     sos = scipy.signal.butter(PREFILTER_ORDER, cutoff_hz, fs=rate_hz, output="sos")
     zi = scipy.signal.sosfilt_zi(sos)[:, :, None] * columns[0][None, None, :]
     return scipy.signal.sosfilt(sos, columns, axis=0, zi=zi)[0]
@@ -162,6 +162,8 @@ def constrain(fit: FitResult, psi_m: float | None = None) -> None:
         g_d, g_q = lumped_params(model.form, model.ts, *params(z), w)
         return np.concatenate((chol_d @ (g_d - model.theta_d[:nd]), chol_q @ (g_q - model.theta_q[:nq])))
 
+    import scipy.optimize  # noqa: PLC0415 (heavy; only when a fit is implausible)
+
     sol = scipy.optimize.least_squares(residual, np.log(guess[free] / scale[free]), method="trf")
     model.from_physical(*params(sol.x), omega_e=w)
 
@@ -204,6 +206,8 @@ def refine_output_error(model: DQModel, sigs: list[Signals], max_records: int = 
     guess = np.array([phys["Rs_q"], phys["Ld"], phys["Lq"], phys["psi_m"]])
     guess = np.where(np.isfinite(guess) & (guess > 0), guess, scale)
     z0 = np.concatenate((np.log(guess / scale), model.theta_d[base_d:], model.theta_q[base_q:]))
+    import scipy.optimize  # noqa: PLC0415
+
     sol = scipy.optimize.least_squares(residual, z0, method="trf", x_scale="jac", max_nfev=200)
     unpack(sol.x)
     trial.meta["refined"] = "output-error"

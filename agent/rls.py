@@ -37,7 +37,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import scipy.linalg
 
 _LOG2_FLOOR = -1000.0  # lam^N below 2^-1000 is computed as exp2(N log2 lam)
 _RCOND = 1e-12         # Jacobi-scaled R with a smaller Cholesky pivot^2 is treated as singular
@@ -79,7 +78,7 @@ class StreamingRLS:
             R0 = np.diag(1.0 / p0) if (p0 > 0).all() else None
         elif p0.shape == (n, n):
             try:
-                R0 = scipy.linalg.cho_solve(scipy.linalg.cho_factor(p0), np.eye(n))
+                R0 = _cho_solve(np.linalg.cholesky(p0), np.eye(n))
                 R0 = 0.5 * (R0 + R0.T)
             except np.linalg.LinAlgError:
                 R0 = None
@@ -165,7 +164,7 @@ class StreamingRLS:
         if self._theta is None:
             fact, d = self._factor()
             if fact is not None:
-                self._theta = scipy.linalg.cho_solve(fact, self._r / d, check_finite=False) / d
+                self._theta = _cho_solve(fact, self._r / d) / d
             else:
                 Rs = self._R / np.outer(d, d)
                 u = np.linalg.lstsq(Rs, (self._r - self._R @ self.theta0) / d, rcond=_RCOND)[0]
@@ -188,7 +187,7 @@ class StreamingRLS:
         n = self.n_params
         if fact is None:
             return np.full((n, n), np.inf)
-        Pm = scipy.linalg.cho_solve(fact, np.diag(1.0 / d), check_finite=False) / d[:, None]
+        Pm = _cho_solve(fact, np.diag(1.0 / d)) / d[:, None]
         Pm = 0.5 * (Pm + Pm.T)
         with np.errstate(over="ignore"):           # ldexp(0, k) = 0: inf but never NaN
             return np.ldexp(Pm, -self._e)
@@ -205,8 +204,8 @@ class StreamingRLS:
             fact = None
             if (dg > 0).all():
                 try:
-                    fact = scipy.linalg.cho_factor(self._R / np.outer(d, d), check_finite=False)
-                    if np.diag(fact[0]).min() ** 2 < _RCOND:
+                    fact = np.linalg.cholesky(self._R / np.outer(d, d))
+                    if np.diag(fact).min() ** 2 < _RCOND:
                         fact = None
                 except np.linalg.LinAlgError:
                     fact = None
@@ -238,3 +237,8 @@ class StreamingRLS:
         obj._n_seen = int(st["samples_seen"])
         obj._theta = obj._fact = obj._w = None
         return obj
+
+
+def _cho_solve(lower: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Solve (L L^T) x = b with the lower Cholesky factor L (small n: two plain solves)."""
+    return np.linalg.solve(lower.T, np.linalg.solve(lower, b))

@@ -2,7 +2,8 @@
 
 The spectrum is scaled so that ``A cos(2 pi f t)`` with ``f`` on a bin reads ``A`` at that bin
 (coherent-gain correction: ``2 |X_k| / sum(w)``; DC and Nyquist are not doubled). Windows are
-periodic (DFT-even), as :func:`scipy.signal.get_window` makes them by default.
+periodic (DFT-even), as :func:`scipy.signal.get_window` makes them by default; they are computed
+here from their cosine-sum coefficients so the agent does not load scipy.
 """
 
 from __future__ import annotations
@@ -10,18 +11,19 @@ from __future__ import annotations
 from functools import lru_cache
 
 import numpy as np
-from scipy.ndimage import maximum_filter1d
-from scipy.signal import get_window
 
-#: Supported window names -> scipy.signal names.
-WINDOWS = {"hann": "hann", "flattop": "flattop", "rect": "boxcar"}
+#: Supported windows -> cosine-sum coefficients a_k of w[n] = sum_k (-1)^k a_k cos(2 pi k n / N)
+#: (scipy.signal.windows' values for "hann", "flattop" and "boxcar").
+WINDOWS = {"hann": (0.5, 0.5), "flattop": (0.21557895, 0.41663158, 0.277263158, 0.083578947, 0.006947368),
+           "rect": (1.0,)}
 
 
 @lru_cache(maxsize=32)
 def _window(name: str, n: int) -> np.ndarray:
     if name not in WINDOWS:
         raise ValueError(f"unknown window '{name}' (known: {', '.join(WINDOWS)})")
-    w = get_window(WINDOWS[name], n)
+    phase = 2 * np.pi * np.arange(n) / n
+    w = sum((-1) ** k * a * np.cos(k * phase) for k, a in enumerate(WINDOWS[name]))
     w.flags.writeable = False
     return w
 
@@ -73,4 +75,9 @@ def nearest_bin(freqs, f_hz: float, half_width: int = 0) -> int:
 def envelope(amplitude, half_width: int = 1) -> np.ndarray:
     """Per bin, the largest amplitude within ``half_width`` bins: the statistic :func:`peak_near`
     reads at a line, so thresholds learned on it match the decision (last axis)."""
-    return maximum_filter1d(np.asarray(amplitude), size=2 * half_width + 1, axis=-1, mode="nearest")
+    a = np.asarray(amplitude)
+    out = a.copy()
+    for shift in range(1, half_width + 1):  # edges repeat the end bins ("nearest")
+        np.maximum(out[..., shift:], a[..., :-shift], out=out[..., shift:])
+        np.maximum(out[..., :-shift], a[..., shift:], out=out[..., :-shift])
+    return out

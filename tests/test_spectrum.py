@@ -4,7 +4,17 @@ import numpy as np
 import pytest
 from scipy.signal import periodogram
 
-from agent.spectrum import WINDOWS, amplitude_spectrum, envelope, peak_near
+from agent.spectrum import WINDOWS, _window, amplitude_spectrum, envelope, peak_near
+
+SCIPY_NAMES = {"hann": "hann", "flattop": "flattop", "rect": "boxcar"}
+
+
+@pytest.mark.parametrize("window", list(WINDOWS))
+@pytest.mark.parametrize("n", [8, 1001, 4096])
+def test_windows_equal_scipy(window, n):
+    from scipy.signal import get_window
+
+    np.testing.assert_allclose(_window(window, n), get_window(SCIPY_NAMES[window], n), atol=1e-12)
 
 FS, N = 25_000.0, 25_000  # 1 Hz bins
 DF = FS / N
@@ -26,7 +36,7 @@ def test_on_bin_tone_reads_its_amplitude_and_dc_is_not_doubled(window):
 def test_matches_scipy_periodogram(window, n):
     x = np.random.default_rng(1).normal(size=n)
     f, a = amplitude_spectrum(x, FS, window)
-    fp, p = periodogram(x, FS, window=WINDOWS[window], detrend=False, scaling="spectrum")
+    fp, p = periodogram(x, FS, window=SCIPY_NAMES[window], detrend=False, scaling="spectrum")
     doubled = np.ones(p.size, dtype=bool)  # periodogram doubles the power of all but DC (and Nyquist, n even)
     doubled[0] = False
     doubled[-1] = n % 2 == 1
