@@ -33,9 +33,9 @@ import numpy as np
 from agent.baseline import BaselineBuilder, residual_spectra
 from agent.decision import STATES, decide
 from agent.frames import abc_to_dq
-from agent.identify import cluster_point, operating_point
+from agent.identify import cluster_point, fit_torque, operating_point
 from agent.library import ModelLibrary
-from agent.model import Signals, input_power
+from agent.model import BASE_TERMS, Signals, input_power, regressors
 from agent.pll import PLL
 from agent.profile import DriveProfile
 from protocols.base import Block, DriveStatus
@@ -96,6 +96,7 @@ class DriveMonitor:
         self._theta_last = 0.0
         self._bad_until = 0  # stream sample until which spans contain NaN or saturated samples
         self._spectra: dict[tuple[str, int], np.ndarray] = {}  # (model, window end sample) -> spectrum
+        self._q_info: dict[int, tuple] = {}  # hop end sample -> (model, q-axis X^T X, X^T y)
         self.pll.reset()
         self.last_input = time.monotonic()
 
@@ -207,13 +208,35 @@ class DriveMonitor:
         spectra = [self._window_spectrum(name, e) for e in ends]
         if any(s is None for s in spectra):
             return self._set(quality="bad_input")
-        m = base.model
-        point = cluster_point(sig, self.profile, m.form, m.extra_q, base.settings.get("prefilter_hz"))
+        point = np.array([self._ts_over_lq(name), fit_torque(sig, self.profile)[1]])
         freqs = base.thresholds.freqs_hz
         d = decide(base, freqs, np.array(spectra), point, op, self.drive)
         return self._set(quality="good", model=name, state=self._hold(d.state), spectrum_state=d.spectrum_state,
                          cluster_state=d.cluster_state, fe_hz=op["fe_hz"], load_pct=op["load_pct"],
                          peaks=d.peaks, cluster_distance2=d.cluster["distance2"])
+
+    def _ts_over_lq(self, name: str) -> float:
+        """Ts/Lq of the q-axis regression (eq. 14) over the span, from per-hop information blocks:
+        each sample enters the least squares once, on its hop (streaming RLS in information form).
+        The span's rows are those of a record of the span plus the row that links it to the sample
+        before it."""
+        m = self.library.baselines[name].model
+        if m.form not in ("lumped", "speed") or self.library.baselines[name].settings.get("prefilter_hz"):
+            return cluster_point(self._signals(self.n_span), self.profile, m.form, m.extra_q,
+                                 self.library.baselines[name].settings.get("prefilter_hz"))[0]
+        terms = BASE_TERMS[m.form][1] + tuple(m.extra_q)
+        ends = range(self._samples - self.n_span + self.n_hop, self._samples + 1, self.n_hop)
+        for end in ends:
+            if self._q_info.get(end, (None,))[0] != name:
+                back = self._samples - end
+                part = self._signals(self.n_hop + 1 + back).slice(0, self.n_hop + 1)
+                x = regressors(terms, part)[:-1]
+                self._q_info[end] = (name, x.T @ x, x.T @ part.i_dq[1, 1:])
+        for old in [k for k in self._q_info if k not in ends]:
+            del self._q_info[old]
+        info = sum(self._q_info[e][1] for e in ends) + np.eye(len(terms)) * 1e-6
+        theta = np.linalg.solve(info, sum(self._q_info[e][2] for e in ends))
+        return float(theta[2])
 
     def _hold(self, raw: str) -> str:
         """Raise at once; lower only after ``alarm_hold_s`` of lower decisions (stream time)."""

@@ -1,0 +1,105 @@
+"""The :class:`Effect` contract shared by every module of the effect library."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+from scipy.signal import butter, sosfiltfilt
+
+from agent.frames import CLARKE, ab_to_dq, dq_to_abc
+from agent.model import Signals, Term
+
+
+@dataclass(frozen=True)
+class Param:
+    """One linear parameter of an effect: its name, unit, meaning and a typical magnitude (used to
+    judge whether records can reveal the effect at a realistic size)."""
+
+    name: str
+    unit: str
+    meaning: str
+    typical: float
+
+
+@dataclass(frozen=True)
+class Effect:
+    """A named physical effect.
+
+    ``columns(sig) -> (m, 2, N)``: one d/q column pair per parameter, row k acting over the interval
+    [t_k, t_k + T_s). ``kind="voltage"``: V per parameter unit, added to the voltage equation
+    L di/dt = v - R i - ... (the dq model's column is scaled by T_s/L_d and T_s/L_q);
+    ``kind="output"``: A per parameter unit, added to the measured current.
+    ``report(values, ctx) -> dict`` turns the fitted parameter values into physical quantities
+    (``ctx``: the fitted base model, ``Rs`` ohm, ``Ld``/``Lq`` H, ``psi_m`` Wb, ``i_rated`` A peak,
+    ``t_mid`` s); its first key is the headline figure, named with its unit.
+    """
+
+    id: str
+    physics: str
+    kind: str
+    params: tuple[Param, ...]
+    columns: Callable[[Signals], np.ndarray]
+    report: Callable[[np.ndarray, dict], dict]
+    signature: str
+    dq_orders: tuple[int, ...] = ()  #: harmonics of fe the effect puts in the dq residual
+    abc_orders: tuple[int, ...] = ()  #: harmonics of fe in the phase residual (0 = DC)
+    reveals: str = ""  #: which records make it identifiable
+    torque: str = "none"  #: what it adds to the torque regression (eq. 15)
+    _cache: list = field(default_factory=lambda: [None, None], compare=False, repr=False)
+
+    def __post_init__(self):
+        if self.kind not in ("voltage", "output"):
+            raise ValueError(f"effect {self.id}: kind must be 'voltage' or 'output'")
+
+    def cols(self, sig: Signals) -> np.ndarray:
+        """``columns(sig)``, cached for the last Signals object (each term asks for its own row)."""
+        if self._cache[0] is not sig:
+            self._cache[:] = [sig, np.asarray(self.columns(sig), dtype=float)]
+        return self._cache[1]
+
+    def terms(self) -> tuple[tuple[Term, ...], tuple[Term, ...]]:
+        """dq-model terms: one d and one q column per parameter (``output`` terms for output effects).
+        A voltage parameter p has coefficients p T_s/L_d (d) and p T_s/L_q (q); an output one p."""
+        out = self.kind == "output"
+        return tuple(tuple(Term(f"{self.id}.{p.name}", exo=lambda s, j=j, ax=ax: self.cols(s)[j, ax], output=out)
+                           for j, p in enumerate(self.params)) for ax in (0, 1))
+
+    def values_from_model(self, model) -> np.ndarray:
+        """The effect's parameter values stored in a dq model's coefficients (physical units)."""
+        names = [f"{self.id}.{p.name}" for p in self.params]
+        d_names = [t.name for t in model.terms[0]]
+        theta = np.array([model.theta_d[d_names.index(n)] for n in names])
+        return theta if self.kind == "output" else theta / model.theta_d[2]  # theta_d[2] = T_s/L_d
+
+
+# --- helpers shared by the effect modules -------------------------------------------------------
+
+def mid_angle(sig: Signals) -> np.ndarray:
+    """Electrical angle at the middle of each sampling interval, rad (where held voltages act)."""
+    return sig.theta_e + 0.5 * sig.omega_e * sig.ts
+
+
+def phase_to_dq(x_abc: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """(3, N) phase quantities -> (2, N) dq at ``theta`` (zero sequence dropped)."""
+    return ab_to_dq(CLARKE[:2] @ x_abc, theta)
+
+
+def amplitude(values) -> float:
+    """Magnitude of a (cos, sin) or (alpha, beta) parameter pair."""
+    return float(np.hypot(values[0], values[1]))
+
+
+SMOOTH_HZ = 2.0  #: Hz, cut-off of the current used inside effect columns (its operating level)
+
+
+def smooth_current(sig: Signals) -> tuple[np.ndarray, np.ndarray]:
+    """The current's slow part: dq (2, N) low-passed at ``SMOOTH_HZ`` (zero phase) and its phases (3, N).
+
+    Effect columns built from the measured current would feed the measurement (its noise and the
+    ripple the model should predict) back into a free-run prediction; the operating current
+    (level, fundamental, zero crossings) is what the effects depend on."""
+    sos = butter(2, SMOOTH_HZ, fs=1.0 / sig.ts, output="sos")
+    i_dq = sosfiltfilt(sos, sig.i_dq, axis=1) if sig.n > 30 else sig.i_dq
+    return i_dq, dq_to_abc(i_dq, sig.theta_e)

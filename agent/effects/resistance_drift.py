@@ -1,0 +1,27 @@
+"""Winding resistance drifting within a record (the winding warms): R_s(t) = R_s (1 + r t)."""
+
+import numpy as np
+
+from agent.effects.base import Effect, Param, smooth_current
+
+
+def columns(sig):
+    t = np.arange(sig.n) * sig.ts
+    return (-(t - 0.5 * sig.n * sig.ts) * smooth_current(sig)[0])[None]  # V per (ohm/s): -(t - t_mid) i
+
+
+def report(v, ctx):
+    r_start = ctx["Rs_q"] - v[0] * ctx["t_mid"]  # the base R_s is the value at mid-record
+    return {"drift_per_s": float(v[0] / r_start), "dR_dt_ohm_per_s": float(v[0])}
+
+
+EFFECT = Effect(
+    id="resistance_drift",
+    physics="The stator resistance changes linearly during a record, R_s(t) = R_s0 (1 + r t), r in 1/s "
+            "(winding warming); the model's R_s is the mid-record value.",
+    kind="voltage",
+    params=(Param("dR_dt", "ohm/s", "rate of change of R_s", 0.2),),
+    columns=columns, report=report,
+    signature="residual growing over time within each record (time-binned residual), mostly on q",
+    reveals="records long enough for the resistance to change (seconds), with load current",
+)

@@ -1,0 +1,171 @@
+"""``pmsm-agent model compare | explain | add-effect | history`` (the model workbench).
+
+Each handler takes the parsed args, prints one JSON object with ``--json`` and raises
+:class:`agent.errors.InputError` for user errors (exit 2)."""
+
+from __future__ import annotations
+
+import logging
+import sys
+from datetime import datetime, timezone
+from pathlib import Path
+
+from agent.errors import InputError
+
+log = logging.getLogger("pmsm-agent.model")
+
+
+def _load(args, model_path):
+    from agent.cli import _load_records
+    from agent.modelfile import load_baseline
+    from agent.workbench.fitting import prepare
+
+    base = load_baseline(model_path)
+    recs = _load_records(args.data, base.profile, min_samples=int(0.2 * base.profile.sampling.rate_hz))
+    return base, recs, prepare(recs, base.profile)
+
+
+def _warn(doc: dict) -> None:
+    for w in doc.get("warnings", []):
+        log.warning("%s", w)
+
+
+def _emit(args, doc, human):
+    from agent.cli import _emit as emit
+
+    emit(args, doc, human)
+
+
+def cmd_compare(args) -> None:
+    from agent.modelfile import load_baseline
+    from agent.workbench.compare import compare
+    from agent.workbench.explain import explain, operating_warnings
+
+    base, _, preps = _load(args, args.model[0])
+    others = {Path(m).stem: load_baseline(m) for m in args.model[1:]}
+    doc, data = compare(base, preps, one_step=args.one_step, others=others)
+    doc["model"] = args.model[0]
+    doc["warnings"] = operating_warnings(base, preps)
+    _warn(doc)
+    ranking = explain(base, preps) if args.report and args.rank else None
+    if args.report:
+        from agent.workbench.report import write_report
+
+        doc["report"] = str(write_report(args.report, f"Model {args.model[0]} against {len(preps)} record(s)",
+                                         doc, data, ranking))
+    n = doc["nrmse"]
+    lines = [f"{doc['mode']} NRMSE: d {100 * n['d']:.3f} %, q {100 * n['q']:.3f} %, total {100 * n['total']:.3f} %",
+             "fit %: " + ", ".join(f"{k} {v:.1f}" for k, v in doc["fit_pct"].items())]
+    lines += [f"  fe {r['fe_hz']:.1f} Hz load {r['load_pct']:.0f} %: "
+              + ", ".join(f"{k} {100 * v:.3f} %" for k, v in r["nrmse"].items()) for r in doc["table"]]
+    lines += ["where: " + (w.get("summary") or f"{w['freq_hz']:.1f} Hz {w['label']}") for w in doc["where"]]
+    lines += [f"report: {doc['report']}"] if args.report else []
+    _emit(args, doc, "\n".join(lines))
+
+
+def cmd_explain(args) -> None:
+    from agent.effects import get
+    from agent.workbench.explain import explain
+
+    candidates = [get(e).id for e in args.effect] if args.effect else None
+    base, _, preps = _load(args, args.model)
+    doc = explain(base, preps, candidates)
+    doc["model"] = args.model
+    _warn(doc)
+    if args.report:
+        from agent.workbench.compare import compare
+        from agent.workbench.report import write_report
+
+        cdoc, data = compare(base, preps)
+        cdoc["warnings"] = doc["warnings"]
+        doc["report"] = str(write_report(args.report, f"Effects missing from {args.model}", cdoc, data, doc))
+    lines = [f"NRMSE (held-out, free run): model {100 * doc['nrmse_before']:.3f} %, refit without effects "
+             f"{100 * doc['nrmse_control']:.3f} %"]
+    for r in doc["candidates"]:
+        mark = "SIGNIFICANT" if r["significant"] else "not identifiable" if not r["identifiable"] else ""
+        lines.append(f"  {r['effect']:22s} explains {100 * r['explained_fraction']:6.1f} %  NRMSE "
+                     f"{100 * r['nrmse_after']:.3f} %  {mark:16s} "
+                     + ", ".join(f"{k} {v:.4g}" for k, v in r["params"].items()))
+    _emit(args, doc, "\n".join(lines))
+
+
+def cmd_add_effect(args) -> None:
+    from agent.baseline import identify_baseline
+    from agent.effects import get
+    from agent.modelfile import save_baseline
+    from agent.workbench.explain import add_effects
+
+    effects = [get(e).id for e in args.effect]
+    base, recs, preps = _load(args, args.model)
+    ref, fig = add_effects(base, preps, effects)
+    _warn(fig)
+    keep = ("form", "robust", "window_s", "prefilter_hz", "confidence", "region", "spectrum_rule")
+    settings = {k: v for k, v in base.settings.items() if k in keep}
+    short = [r.source for r in recs if r.duration_s < settings.get("window_s", 2.0)]
+    if len(recs) < 4 or short:
+        raise InputError(f"add-effect relearns the thresholds and the cluster: it needs at least 4 healthy records "
+                         f"of at least {settings.get('window_s', 2.0):g} s (got {len(recs)}"
+                         + (f", too short: {', '.join(short)}" if short else "") + ")")
+    new = identify_baseline(recs, base.profile, model=ref.model, **settings)
+    entry = {"version": len(base.history) + 1, "parent": str(args.model), "added": effects,
+             "effects": list(ref.model.meta["effects"]), "nrmse_before": fig["nrmse_before"],
+             "nrmse_control": fig["nrmse_control"], "nrmse_after": fig["nrmse_after"], "params": fig["params"],
+             "records": [r.source for r in recs], "timestamp": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+    new.history = list(base.history) + [entry]
+    save_baseline(new, args.out)
+    doc = {"model": str(args.out), "effect": effects[0] if len(effects) == 1 else effects,
+           "nrmse_before": fig["nrmse_before"], "nrmse_after": fig["nrmse_after"],
+           "nrmse_control": fig["nrmse_control"], "params": fig["params"], "base": fig["base"],
+           "version": entry["version"], "parent": str(args.model), "warnings": fig["warnings"],
+           "th3_change": float((new.thresholds.th3.mean() / base.thresholds.th3.mean()) - 1)
+           if new.thresholds.th3.size == base.thresholds.th3.size else None}
+    _emit(args, doc, (f"wrote {args.out} (version {entry['version']}, effects {', '.join(entry['effects'])})\n"
+                      f"held-out free-run NRMSE: before {100 * fig['nrmse_before']:.3f} %, refit without "
+                      f"{100 * fig['nrmse_control']:.3f} %, with {'+'.join(effects)} {100 * fig['nrmse_after']:.3f} %\n"
+                      + "\n".join(f"  {e}: " + ", ".join(f"{k} {v:.4g}" for k, v in p.items())
+                                  for e, p in fig["params"].items())))
+
+
+def cmd_history(args) -> None:
+    from agent.modelfile import load_baseline
+
+    base = load_baseline(args.model)
+    versions = [{"version": 0, "effects": [], "note": "baseline (identify)"}] + list(base.history)
+    doc = {"model": str(args.model), "effects": list(base.model.meta.get("effects", [])), "versions": versions}
+    lines = [f"{args.model}: effects {', '.join(doc['effects']) or '(none)'}"]
+    for v in versions:
+        lines.append(f"  v{v['version']}: " + (v.get("note") or
+                     f"+{'+'.join(v['added'])} from {v['parent']} at {v['timestamp']}: NRMSE "
+                     f"{100 * v['nrmse_before']:.3f} % -> {100 * v['nrmse_after']:.3f} %"))
+    _emit(args, doc, "\n".join(lines))
+
+
+def add_commands(sub, common) -> None:
+    p = sub.add_parser("model", help="model workbench: compare, explain, add-effect, history")
+    msub = p.add_subparsers(dest="model_command", required=True, metavar="ACTION")
+    s = msub.add_parser("compare", parents=[common], help="fit of a model on records, and where it fails")
+    s.add_argument("--model", required=True, action="append", help="model file (repeat to compare several)")
+    s.add_argument("--report", metavar="DIR", help="write an HTML report with plots into DIR")
+    s.add_argument("--one-step", action="store_true", help="report one-step prediction instead of free run")
+    s.add_argument("--no-rank", dest="rank", action="store_false", help="leave the effect ranking out of the report")
+    s.add_argument("data", nargs="+", help="records (CSV, NPZ, TDMS)")
+    s.set_defaults(func=cmd_compare)
+    s = msub.add_parser("explain", parents=[common], help="rank the physical effects the model lacks")
+    s.add_argument("--model", required=True)
+    s.add_argument("--effect", action="append", metavar="ID", help="only these candidates (repeatable)")
+    s.add_argument("--report", metavar="DIR", help="write an HTML report with plots into DIR")
+    s.add_argument("data", nargs="+")
+    s.set_defaults(func=cmd_explain)
+    s = msub.add_parser("add-effect", parents=[common], help="refit with an effect, write a new model version")
+    s.add_argument("--model", required=True)
+    s.add_argument("--effect", required=True, action="append", metavar="ID", help="effect id (repeatable)")
+    s.add_argument("--out", required=True, help="new model file")
+    s.add_argument("data", nargs="+", help="healthy records (at least 4, for the thresholds and cluster)")
+    s.set_defaults(func=cmd_add_effect)
+    s = msub.add_parser("history", parents=[common], help="versions of a model file")
+    s.add_argument("model")
+    s.set_defaults(func=cmd_history)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit("use: pmsm-agent model ...")

@@ -1,0 +1,180 @@
+"""``model compare``: how well a model reproduces records, and where and why it fails.
+
+Fit figures per axis (d, q) and per phase, as NRMSE (:func:`agent.model.nrmse`'s normalisation) and
+as fit % = 100 (1 - ||y - y_hat|| / ||y - mean(y)||) (MATLAB ``compare``), for one-step prediction
+and free-run simulation; with several models and operating points a Table-5-like matrix.
+"Where": the phase-residual spectrum's largest peaks labelled by harmonic order of fe (abc and dq),
+fault families and the effects with that signature; the residual binned over electrical angle,
+phase current and time; whiteness and input cross-correlation of the one-step residual with a
+99 % band (MATLAB ``resid``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from agent.baseline import residual_spectra
+from agent.effects import EFFECTS
+from agent.frames import dq_to_abc
+from agent.frequencies import fault_frequencies
+from agent.model import nrmse
+from agent.workbench.fitting import Prepared
+
+MAX_LAG = 40  #: samples, correlation lags
+Z99 = 2.576  #: two-sided 99 % normal quantile
+N_PEAKS = 6
+ANGLE_BINS, CURRENT_BINS, TIME_BINS = 36, 24, 10
+
+
+def fit_pct(y: np.ndarray, y_hat: np.ndarray) -> float:
+    """100 (1 - ||y - y_hat|| / ||y - mean(y)||) over the last axis (MATLAB compare's fit)."""
+    return float(100.0 * (1.0 - np.linalg.norm(y - y_hat) / max(np.linalg.norm(y - y.mean(axis=-1, keepdims=True)),
+                                                               1e-300)))
+
+
+def _figures(preps: list[Prepared], preds: list[np.ndarray]) -> dict:
+    meas = np.hstack([p.sig.i_dq for p in preps])
+    out = {"nrmse": nrmse(meas, np.hstack(preds))}
+    out["nrmse"].update({ph: v for ph, v in zip("abc", _phase_nrmse(preps, preds))})
+    fit = {}
+    for ax, name in enumerate("dq"):
+        fit[name] = float(np.mean([fit_pct(p.sig.i_dq[ax], y[ax]) for p, y in zip(preps, preds)]))
+    for ph, name in enumerate("abc"):
+        fit[name] = float(np.mean([fit_pct(p.sig.i_abc[ph], dq_to_abc(y, p.sig.theta_e)[ph])
+                                   for p, y in zip(preps, preds)]))
+    out["fit_pct"] = fit
+    return out
+
+
+def _phase_nrmse(preps, preds) -> list[float]:
+    err = np.hstack([p.sig.i_abc - dq_to_abc(y, p.sig.theta_e) for p, y in zip(preps, preds)])
+    ref = np.sqrt(np.mean(np.sum(np.hstack([p.sig.i_dq for p in preps]) ** 2, axis=0)))
+    return (np.sqrt(np.mean(err**2, axis=1)) / ref).tolist()
+
+
+def table(models: dict, preps: list[Prepared]) -> list[dict]:
+    """Rows: records grouped by operating point (fe 0.5 Hz, load 5 %); free-run NRMSE per model."""
+    groups: dict[tuple, list[Prepared]] = {}
+    for p in preps:
+        groups.setdefault((round(p.op["fe_hz"] * 2) / 2, 5 * round(p.op["load_pct"] / 5)), []).append(p)
+    rows = []
+    for (fe, load), ps in sorted(groups.items()):
+        meas = np.hstack([p.sig.i_dq for p in ps])
+        rows.append({"fe_hz": fe, "load_pct": load, "records": len(ps),
+                     "nrmse": {name: nrmse(meas, np.hstack([b.model.simulate(p.sig) for p in ps]))["total"]
+                               for name, b in models.items()}})
+    return rows
+
+
+def _label(f: float, fe: float, df: float, families: dict) -> tuple[str, list[str]]:
+    """Likely origin of a residual line at ``f`` Hz: harmonic of fe (abc and dq), fault family."""
+    labels, effects = [], []
+    k = int(round(f / fe))
+    if abs(f - k * fe) <= 1.5 * df:
+        labels.append("DC" if k == 0 else f"{k} fe in abc (dq: {abs(k - 1)} fe)")
+        effects += [e.id for e in EFFECTS.values() if k in e.abc_orders or abs(k - 1) in e.dq_orders]
+    for fam, lines in families.items():
+        for line in lines:
+            if abs(f - line["freq_hz"]) <= 1.5 * df:
+                labels.append(f"{fam} k={line['k']} sideband")
+                effects += ["speed_ripple"] if fam == "gear_driving" and line["k"] == 1 else []
+    return "; ".join(labels) or f"{f / fe:.2f} fe (no harmonic or fault line)", sorted(set(effects))
+
+
+def _corr(x: np.ndarray, y: np.ndarray, lags: np.ndarray) -> np.ndarray:
+    """Normalised cross-correlation r_xy(lag) = E[x(k) y(k - lag)] / (sigma_x sigma_y)."""
+    x, y = x - x.mean(), y - y.mean()
+    n, s = x.size, np.sqrt(np.sum(x**2) * np.sum(y**2)) + 1e-300
+    return np.array([np.sum(x[max(lag, 0):n + min(lag, 0)] * y[max(-lag, 0):n - max(lag, 0)]) for lag in lags]) / s
+
+
+def where(baseline, preps: list[Prepared], preds: list[np.ndarray]) -> tuple[list[dict], dict]:
+    """Findings (JSON) and the arrays behind them (for the report's plots)."""
+    model, prof, th = baseline.model, baseline.profile, baseline.thresholds
+    fe = float(np.mean([p.op["fe_hz"] for p in preps]))
+    res = [p.sig.i_dq - y for p, y in zip(preps, preds)]
+    found, data = [], {"fe_hz": fe}
+    # 1. residual spectrum of phase a, windows as the thresholds' when the records allow
+    n_min = min(p.sig.n for p in preps) * preps[0].sig.ts
+    window = th.window_s if n_min >= th.window_s else n_min
+    spec = [residual_spectra(model, p.sig, window, th.freqs_hz[-1]) for p in preps]
+    freqs, amp = spec[0][0], np.vstack([a for _, a in spec]).mean(axis=0)
+    same_grid = freqs.size == th.freqs_hz.size
+    data.update(freqs=freqs, amp=amp, th2=th.th2 if same_grid else None, th3=th.th3 if same_grid else None)
+    df = freqs[1] - freqs[0]
+    floor = np.median(amp)
+    is_peak = (amp[1:-1] >= amp[:-2]) & (amp[1:-1] >= amp[2:]) & (amp[1:-1] > 4 * floor)
+    idx = 1 + np.flatnonzero(is_peak)
+    idx = idx[np.argsort(amp[idx])[::-1][:N_PEAKS]]
+    families = fault_frequencies(prof, fe, 3)
+    peaks = []
+    for i in sorted(idx, key=lambda i: -amp[i]):
+        label, effects = _label(freqs[i], fe, df, families)
+        over = "above TH3" if same_grid and amp[i] > th.th3[i] else "above TH2" if same_grid and amp[i] > th.th2[i] else ""
+        peaks.append({"freq_hz": float(freqs[i]), "amplitude_a": float(amp[i]), "label": label,
+                      "effects": effects, "threshold": over})
+    data["peaks"] = peaks
+    found += [{"kind": "spectrum_peak", **pk} for pk in peaks]
+    # 2. binned residual: over electrical angle, phase-a current, time
+    theta = np.concatenate([np.mod(p.sig.theta_e, 2 * np.pi) for p in preps])
+    r = np.hstack(res)
+    rms = float(np.sqrt(np.mean(np.sum(r**2, axis=0))))
+    ang = np.minimum((theta / (2 * np.pi) * ANGLE_BINS).astype(int), ANGLE_BINS - 1)
+    by_angle = np.array([[np.bincount(ang, r[ax], ANGLE_BINS)[b] for b in range(ANGLE_BINS)] for ax in (0, 1)])
+    by_angle /= np.maximum(np.bincount(ang, minlength=ANGLE_BINS), 1)
+    ra = np.concatenate([dq_to_abc(x, p.sig.theta_e)[0] for x, p in zip(res, preps)])
+    ia = np.concatenate([p.sig.i_abc[0] for p in preps])
+    edges = np.linspace(ia.min(), ia.max(), CURRENT_BINS + 1)
+    cb = np.clip(np.digitize(ia, edges) - 1, 0, CURRENT_BINS - 1)
+    by_current = np.bincount(cb, ra, CURRENT_BINS) / np.maximum(np.bincount(cb, minlength=CURRENT_BINS), 1)
+    step = float(np.mean(ra[ia > 0]) - np.mean(ra[ia < 0]))
+    slope = float(np.polyfit(ia, ra, 1)[0])
+    by_time = np.array([[np.sqrt(np.mean(np.sum(c**2, axis=0))) for c in np.array_split(x, TIME_BINS, axis=1)]
+                        for x in res])
+    trend = float(np.polyfit(np.arange(TIME_BINS), by_time.mean(axis=0), 1)[0] * (TIME_BINS - 1))
+    data.update(angle_bins=by_angle, current_edges=edges, current_bins=by_current, time_bins=by_time)
+    found += [
+        {"kind": "angle", "summary": f"mean d/q residual varies over the electrical angle by "
+         f"{np.ptp(by_angle[0]):.4f} / {np.ptp(by_angle[1]):.4f} A (residual RMS {rms:.4f} A)",
+         "ptp_a": [float(np.ptp(by_angle[0])), float(np.ptp(by_angle[1]))],
+         "effects": ["current_offset", "flux_harmonics", "inverter_deadtime"]},
+        {"kind": "current", "summary": f"phase-a residual: step {step:+.4f} A across the current's sign "
+         f"(dead time), slope {slope:+.5f} A/A (gain), mean {np.mean(ra):+.4f} A (offset)",
+         "sign_step_a": step, "slope": slope, "mean_a": float(np.mean(ra)),
+         "effects": ["inverter_deadtime", "current_gain_mismatch", "current_offset"]},
+        {"kind": "time", "summary": f"residual RMS changes by {trend:+.4f} A from the first to the last tenth "
+         f"of the records", "trend_a": trend, "effects": ["resistance_drift"]},
+    ]
+    # 3. whiteness of the one-step residual and its cross-correlation with the inputs (MATLAB resid)
+    e1 = np.hstack([p.sig.i_dq - model.one_step(p.sig) for p in preps])[:, 1:]
+    v = np.hstack([p.sig.v_dq for p in preps])[:, :-1]
+    lags = np.arange(-MAX_LAG, MAX_LAG + 1)
+    band = Z99 / np.sqrt(e1.shape[1])
+    auto = np.array([_corr(e1[ax], e1[ax], lags[MAX_LAG + 1:]) for ax in (0, 1)])
+    cross = np.array([_corr(e1[1], v[ax], lags) for ax in (0, 1)])
+    data.update(lags=lags, auto=auto, cross=cross, band=band)
+    found += [
+        {"kind": "whiteness", "summary": f"one-step residual autocorrelation outside the 99 % band at "
+         f"{np.mean(np.abs(auto[0]) > band):.0%} (d) / {np.mean(np.abs(auto[1]) > band):.0%} (q) of lags 1..{MAX_LAG}",
+         "band": band, "outside": [float(np.mean(np.abs(a) > band)) for a in auto],
+         "max_abs": [float(np.max(np.abs(a))) for a in auto]},
+        {"kind": "cross_correlation", "summary": f"q residual vs v_d / v_q: max |r| {np.max(np.abs(cross[0])):.3f} / "
+         f"{np.max(np.abs(cross[1])):.3f} (band {band:.3f})", "max_abs": [float(np.max(np.abs(c))) for c in cross],
+         "effects": ["voltage_delay"]},
+    ]
+    return found, data
+
+
+def compare(baseline, preps: list[Prepared], one_step: bool = False, others: dict | None = None) -> tuple[dict, dict]:
+    """The CONTRACT document of ``model compare`` (free-run unless ``one_step``) and plot data."""
+    model = baseline.model
+    free = [model.simulate(p.sig) for p in preps]
+    step = [model.one_step(p.sig) for p in preps]
+    figs = {"free_run": _figures(preps, free), "one_step": _figures(preps, step)}
+    chosen = figs["one_step" if one_step else "free_run"]
+    found, data = where(baseline, preps, free)
+    doc = {"nrmse": chosen["nrmse"], "fit_pct": chosen["fit_pct"], "mode": "one_step" if one_step else "free_run",
+           "modes": figs, "where": found, "table": table({"model": baseline, **(others or {})}, preps),
+           "records": [p.source for p in preps]}
+    data["traces"] = [(p.sig, y) for p, y in zip(preps[:1], free)]
+    return doc, data

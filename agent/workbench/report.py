@@ -1,0 +1,142 @@
+"""HTML report of ``model compare`` / ``model explain``: one page with PNG plots (matplotlib, Agg)."""
+
+from __future__ import annotations
+
+import html
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from agent.frames import dq_to_abc  # noqa: E402
+
+
+def _save(fig, out: Path, name: str) -> str:
+    fig.tight_layout()
+    fig.savefig(out / name, dpi=90)
+    plt.close(fig)
+    return name
+
+
+def _plots(data: dict, ranking: dict | None, out: Path) -> list[tuple[str, str]]:
+    figs = []
+    sig, y = data["traces"][0]
+    n = min(sig.n, int(0.05 / sig.ts))
+    t = np.arange(n) * sig.ts * 1e3
+    fig, ax = plt.subplots(3, 1, figsize=(10, 7), sharex=True)
+    for k, name in enumerate(("i_d", "i_q")):
+        ax[k].plot(t, sig.i_dq[k, :n], lw=0.8, label="measured")
+        ax[k].plot(t, y[k, :n], lw=0.8, label="model (free run)")
+        ax[k].set_ylabel(f"{name} (A)")
+    ax[2].plot(t, sig.i_abc[0, :n], lw=0.8, label="measured")
+    ax[2].plot(t, dq_to_abc(y[:, :n], sig.theta_e[:n])[0], lw=0.8, ls="--", label="model (free run)")
+    ax[2].set_ylabel("i_a (A)")
+    ax[2].set_xlabel("time (ms)")
+    ax[0].legend(loc="upper right")
+    figs.append(("Measured against model (first record, 50 ms)", _save(fig, out, "traces.png")))
+
+    fig, ax = plt.subplots(figsize=(10, 4.5))
+    f, a = data["freqs"], data["amp"]
+    ax.semilogy(f, a, lw=0.7, label="residual, phase a")
+    if data["th3"] is not None:
+        ax.semilogy(f, data["th2"], lw=0.7, color="orange", label="TH2 (caution)")
+        ax.semilogy(f, data["th3"], lw=0.7, color="red", label="TH3 (warning)")
+    for k, pk in enumerate(data["peaks"]):
+        ax.annotate(f"{pk['freq_hz']:.1f} Hz: {pk['label']}", (pk["freq_hz"], pk["amplitude_a"]),
+                    xytext=(10, 12 + 14 * (k % 3)), textcoords="offset points", fontsize=7,
+                    arrowprops={"arrowstyle": "-", "lw": 0.5})
+    ax.set_xlabel("frequency (Hz)")
+    ax.set_ylabel("amplitude (A)")
+    ax.legend(loc="upper right", fontsize=8)
+    figs.append(("Residual spectrum with thresholds and labelled peaks", _save(fig, out, "spectrum.png")))
+
+    fig, ax = plt.subplots(1, 3, figsize=(12, 3.8))
+    deg = (np.arange(data["angle_bins"].shape[1]) + 0.5) * 360 / data["angle_bins"].shape[1]
+    ax[0].plot(deg, data["angle_bins"][0], marker=".", label="d")
+    ax[0].plot(deg, data["angle_bins"][1], marker=".", label="q")
+    ax[0].set_xlabel("electrical angle (deg)")
+    ax[0].set_ylabel("mean residual (A)")
+    ax[0].legend()
+    e = data["current_edges"]
+    ax[1].plot(0.5 * (e[1:] + e[:-1]), data["current_bins"], marker=".")
+    ax[1].axvline(0, color="grey", lw=0.5)
+    ax[1].set_xlabel("phase-a current (A)")
+    ax[1].set_ylabel("mean phase-a residual (A)")
+    for row in data["time_bins"]:
+        ax[2].plot(np.arange(row.size) + 1, row, marker=".", lw=0.7)
+    ax[2].set_xlabel("tenth of the record")
+    ax[2].set_ylabel("residual RMS (A)")
+    figs.append(("Residual binned over angle, current and time", _save(fig, out, "bins.png")))
+
+    fig, ax = plt.subplots(1, 2, figsize=(12, 3.8))
+    lags, band = data["lags"], data["band"]
+    pos = lags[lags > 0]
+    ax[0].stem(pos, data["auto"][0], linefmt="C0-", markerfmt="C0.", basefmt=" ", label="d")
+    ax[0].stem(pos + 0.3, data["auto"][1], linefmt="C1-", markerfmt="C1.", basefmt=" ", label="q")
+    ax[0].set_title("autocorrelation of the one-step residual")
+    ax[1].plot(lags, data["cross"][0], marker=".", label="e_q vs v_d")
+    ax[1].plot(lags, data["cross"][1], marker=".", label="e_q vs v_q")
+    ax[1].set_title("cross-correlation with the inputs")
+    for a in ax:
+        a.axhspan(-band, band, color="grey", alpha=0.25, label="99 % band")
+        a.set_xlabel("lag (samples)")
+        a.legend(fontsize=8)
+    figs.append(("Residual whiteness and input correlation (as MATLAB resid)", _save(fig, out, "correlation.png")))
+
+    if ranking:
+        rows = ranking["candidates"][::-1]
+        fig, ax = plt.subplots(figsize=(10, 0.45 * len(rows) + 1.2))
+        colors = ["tab:green" if r["significant"] else "tab:grey" if r["identifiable"] else "tab:orange" for r in rows]
+        ax.barh([r["effect"] for r in rows], [100 * r["explained_fraction"] for r in rows], color=colors)
+        ax.set_xlabel("share of the held-out residual explained (%) - green: significant, "
+                      "orange: not identifiable from these records")
+        ax.axvline(0, color="black", lw=0.5)
+        figs.append(("Effect ranking", _save(fig, out, "ranking.png")))
+    return figs
+
+
+def _table(rows: list[list], head: list[str]) -> str:
+    esc = lambda v: html.escape(f"{v:.4g}" if isinstance(v, float) else str(v))  # noqa: E731
+    return ("<table><tr>" + "".join(f"<th>{esc(h)}</th>" for h in head) + "</tr>"
+            + "".join("<tr>" + "".join(f"<td>{esc(c)}</td>" for c in r) + "</tr>" for r in rows) + "</table>")
+
+
+def write_report(out_dir, title: str, doc: dict, data: dict, ranking: dict | None = None) -> Path:
+    """Write ``index.html`` and its PNGs into ``out_dir``; returns the page's path."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    figs = _plots(data, ranking, out)
+    m = doc["modes"]
+    fit = _table([[mode, *(100 * m[mode]["nrmse"][k] for k in ("d", "q", "total", "a", "b", "c")),
+                   *(m[mode]["fit_pct"][k] for k in "dqabc")] for mode in ("free_run", "one_step")],
+                 ["mode", "NRMSE d %", "q %", "total %", "a %", "b %", "c %", "fit d %", "fit q %", "fit a %",
+                  "fit b %", "fit c %"])
+    models = list(doc["table"][0]["nrmse"]) if doc["table"] else []
+    t5 = _table([[r["fe_hz"], r["load_pct"], r["records"], *(100 * r["nrmse"][k] for k in models)] for r in doc["table"]],
+                ["fe (Hz)", "load (%)", "records", *(f"{k}: NRMSE %" for k in models)])
+    where = "".join(f"<li>{html.escape(w.get('summary') or w['label'] + ' at %.1f Hz' % w['freq_hz'])}"
+                    + (f" <i>(look at: {html.escape(', '.join(w['effects']))})</i>" if w.get("effects") else "")
+                    + "</li>" for w in doc["where"])
+    rank = ""
+    if ranking:
+        rank = "<h2>Effect ranking (held-out, against a refit without effects)</h2>" + _table(
+            [[r["effect"], 100 * r["explained_fraction"], 100 * r["nrmse_after"], r["significant"], r["identifiable"],
+              ", ".join(f"{k}={v:.4g}" for k, v in r["params"].items()), r.get("note", "")]
+             for r in ranking["candidates"]],
+            ["effect", "explained %", "NRMSE after %", "significant", "identifiable", "parameters", "note"])
+        rank = (f"<p>NRMSE of the model as it is: {100 * ranking['nrmse_before']:.3f} %; refit without effects "
+                f"(control): {100 * ranking['nrmse_control']:.3f} %</p>") + rank
+    warn = "".join(f"<li class='warn'>{html.escape(w)}</li>" for w in doc.get("warnings", []))
+    imgs = "".join(f"<h2>{html.escape(cap)}</h2><img src='{name}' alt='{html.escape(cap)}'>" for cap, name in figs)
+    page = f"""<!doctype html><html><head><meta charset="utf-8"><title>{html.escape(title)}</title><style>
+body{{font-family:sans-serif;max-width:1200px;margin:1em auto;color:#222}} table{{border-collapse:collapse;margin:.5em 0}}
+td,th{{border:1px solid #bbb;padding:2px 8px;text-align:right;font-size:13px}} img{{max-width:100%}}
+.warn{{color:#b00}} h2{{font-size:1.1em;margin-top:1.4em}}</style></head><body>
+<h1>{html.escape(title)}</h1><ul>{warn}</ul><h2>Fit</h2>{fit}<h2>By operating point (as the paper's Table 5)</h2>{t5}
+{rank}<h2>Where it fails</h2><ul>{where}</ul>{imgs}</body></html>"""
+    path = out / "index.html"
+    path.write_text(page)
+    return path
