@@ -155,9 +155,10 @@ def cmd_diagnose(args) -> None:
 
 
 def cmd_demo(args) -> None:
-    from agent.demo import run_offline_demo
+    from agent.demo import run_demo
 
-    transitions = run_offline_demo(seconds=args.seconds, say=lambda s: print(s, file=sys.stderr if args.json else sys.stdout, flush=True))
+    transitions = run_demo(seconds=args.seconds,
+                           say=lambda s: print(s, file=sys.stderr if args.json else sys.stdout, flush=True))
     if args.json:
         json.dump({"transitions": transitions}, sys.stdout, default=_json_default)
         sys.stdout.write("\n")
@@ -170,7 +171,8 @@ def build_parser() -> argparse.ArgumentParser:
     common.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
     common.add_argument("-v", "--verbose", action="store_true", help="log progress to stderr")
 
-    p = argparse.ArgumentParser(prog="pmsm-agent", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="pmsm-agent", description="Model-based transmission-fault detection for "
+                                "PMSM drives: simulate, identify, diagnose, the model workbench and the agent service.")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     s = sub.add_parser("simulate", parents=[common], help="write a record from the rig simulator")
@@ -217,7 +219,7 @@ def build_parser() -> argparse.ArgumentParser:
         importlib.import_module(module).add_commands(sub, common)
 
     s = sub.add_parser("demo", parents=[common], help="the embedded demo (simulated drive, healthy then faulty)")
-    s.add_argument("--seconds", type=float, default=60.0, help="wall-time limit, s (default 60)")
+    s.add_argument("--seconds", type=float, default=60.0, help="wall-time limit, s (default and at most 60)")
     s.set_defaults(func=cmd_demo)
     return p
 

@@ -25,8 +25,9 @@ log = logging.getLogger(__name__)
 class Schedule:
     """Validity range around a baseline's operating point and the switching hysteresis."""
 
-    fe_rel: float = 0.02  #: valid within +-2 % of the baseline's electrical frequency
-    load_pct: float = 5.0  #: valid within +-5 %-points of its load
+    fe_tol_hz: float = 2.0  #: valid within +-2 Hz of the baseline's electrical frequency
+    load_tol_pct: float = 5.0  #: valid within +-5 %-points of its load (the paper's Table 5: models do not
+    #: transfer between 73 and 80 % load)
     hysteresis: float = 0.2  #: a new baseline must be this much closer (normalised distance) to take over
 
 
@@ -63,7 +64,7 @@ class ModelLibrary:
         """Normalised distance of an operating point from a baseline's; <= 1 means within range."""
         op = self.baselines[name].operating_point
         s = self.schedule
-        return max(abs(fe_hz - op["fe_hz"]) / (s.fe_rel * op["fe_hz"]), abs(load_pct - op["load_pct"]) / s.load_pct)
+        return max(abs(fe_hz - op["fe_hz"]) / s.fe_tol_hz, abs(load_pct - op["load_pct"]) / s.load_tol_pct)
 
     def select(self, fe_hz: float, load_pct: float, current: str | None = None) -> str | None:
         """Name of the baseline to use at (fe, load), keeping ``current`` unless another is clearly closer."""

@@ -9,12 +9,16 @@ computed once, when the window completes, and reused by the later spans that con
 
 Around the span decision:
 
+* persistence: a level is raised when ``persist_hops`` consecutive decisions reach it (a single
+  decision's false-alarm rate is a few per cent, see docs/method.md);
 * hold: a raised level is kept until lower decisions have lasted ``alarm_hold_s`` (no chattering);
 * quality: ``no_model`` outside every baseline (no alarm), ``learning`` while a baseline is being
   learned, ``bad_input`` for a span with NaN or saturated samples, ``stale`` when input stops
   (:meth:`DriveMonitor.tick`), else ``good``. The last values are kept in every case.
 
-Latency: a fault that starts at t0 fills a whole span by t0 + span + hop at the latest.
+Latency: a fault that starts at t0 fills a whole span by t0 + span + hop at the latest and is
+raised ``persist_hops - 1`` hops later: with the defaults (span 4 s, hop 0.5 s, 2 hops) within
+one span plus 1 s.
 
 Learning (commissioning) runs the baseline's two passes on the stream
 (:class:`agent.baseline.BaselineBuilder`): ``learn_windows`` non-overlapping spans for the
@@ -52,7 +56,8 @@ _ROWS = ("va", "vb", "vc", "ia", "ib", "ic", "theta_e", "omega_e", "i_d", "i_q",
 class PipelineConfig:
     window_s: float = 2.0  #: residual-spectrum window, s (a baseline's thresholds are learned on it)
     span_windows: int = 2  #: windows per assessment (a record of this length offline)
-    hop_s: float = 1.0  #: an assessment every hop, s (divides window_s)
+    hop_s: float = 0.5  #: an assessment every hop, s (divides window_s)
+    persist_hops: int = 2  #: consecutive decisions needed to raise a level
     alarm_hold_s: float = 10.0  #: a raised level drops only after this long below it, s
     stale_after_s: float = 3.0  #: no input for this long -> quality "stale", s
     learn_windows: int = 30  #: spans (parameters) and windows (thresholds) to learn a baseline
@@ -81,6 +86,7 @@ class DriveMonitor:
         self.pll = PLL(self.rate, profile.rated_fe_hz)
         self.status = DriveStatus(drive)
         self._below_since: float | None = None
+        self._recent: list[str] = []
         self._builder: BaselineBuilder | None = None
         self._learn_name = ""
         self.reset_stream()
@@ -92,9 +98,11 @@ class DriveMonitor:
         self._filled = 0
         self._since_hop = 0
         self._samples = 0  # samples since the stream (re)started
+        self._learn_mark = -(1 << 62)  # learning takes non-overlapping spans/windows from here on
         self._next_sample: int | None = None
         self._theta_last = 0.0
         self._bad_until = 0  # stream sample until which spans contain NaN or saturated samples
+        self._recent = []
         self._spectra: dict[tuple[str, int], np.ndarray] = {}  # (model, window end sample) -> spectrum
         self._q_info: dict[int, tuple] = {}  # hop end sample -> (model, q-axis X^T X, X^T y)
         self.pll.reset()
@@ -215,6 +223,13 @@ class DriveMonitor:
                          cluster_state=d.cluster_state, fe_hz=op["fe_hz"], load_pct=op["load_pct"],
                          peaks=d.peaks, cluster_distance2=d.cluster["distance2"])
 
+    def last_spectrum(self) -> tuple[str, np.ndarray, np.ndarray] | None:
+        """(model, freqs_hz, amplitude) of the newest window's residual spectrum, for queries."""
+        if not self._spectra:
+            return None
+        name, end = max(self._spectra, key=lambda k: k[1])
+        return name, self.library.baselines[name].thresholds.freqs_hz, self._spectra[(name, end)]
+
     def _ts_over_lq(self, name: str) -> float:
         """Ts/Lq of the q-axis regression (eq. 14) over the span, from per-hop information blocks:
         each sample enters the least squares once, on its hop (streaming RLS in information form).
@@ -239,11 +254,17 @@ class DriveMonitor:
         return float(theta[2])
 
     def _hold(self, raw: str) -> str:
-        """Raise at once; lower only after ``alarm_hold_s`` of lower decisions (stream time)."""
+        """Raise to the level held by the last ``persist_hops`` decisions; lower only after
+        ``alarm_hold_s`` of lower decisions (stream time)."""
+        self._recent = (self._recent + [raw])[-self.config.persist_hops:]
+        sustained = min(self._recent, key=STATES.index) if len(self._recent) == self.config.persist_hops else "normal"
         held = self.status.state if self.status.quality == "good" else "normal"
+        if STATES.index(sustained) > STATES.index(held):
+            self._below_since = None
+            return sustained
         if STATES.index(raw) >= STATES.index(held):
             self._below_since = None
-            return raw
+            return held
         now = self._samples / self.rate
         self._below_since = now if self._below_since is None else self._below_since
         if now - self._below_since >= self.config.alarm_hold_s:
@@ -266,7 +287,7 @@ class DriveMonitor:
         """Learn a baseline named ``name`` from the stream (see the module docstring)."""
         self._builder = BaselineBuilder(self.profile, window_s=self.config.window_s, **settings)
         self._learn_name = name
-        self._learn_mark = self._samples
+        self._learn_mark = -(1 << 62)
         self.on_event("learning", {"name": name, "phase": "parameters"})
 
     @property

@@ -87,19 +87,22 @@ def replay_source(files: list[str], drive: str, profile, *, block_s: float = 0.1
     return RecordSource(f"replay:{drive}", drive, records, profile.sampling.rate_hz, block_s, speedup)
 
 
-def simulated_source(profile, schedule: list[tuple[str, float]], drive: str = "drive1", *, load_pct: float = 80.0,
-                     segment_s: float = 20.0, seed: int = 1, block_s: float = 0.1, speedup: float = 1.0,
+def simulated_source(profile, schedule: list[tuple], drive: str = "drive1", *, load_pct: float = 80.0,
+                     segment_s: float = 8.0, seed: int = 1, block_s: float = 0.1, speedup: float = 1.0,
                      loop: bool = False) -> RecordSource:
-    """The embedded simulated drive: ``schedule`` is [(condition, seconds), ...] played in order
-    (records of at most ``segment_s``), repeated when ``loop``."""
+    """The embedded simulated drive: ``schedule`` is [(condition, seconds[, load_pct[, severity]]), ...]
+    played in order, repeated when ``loop``. Each phase is cut into records of at most
+    ``segment_s``; every record is a new operating session of the rig (its own small load and
+    temperature spread), so learning sees the record-to-record variation a plant has."""
     from agent.simulator import simulate
 
     def records():
         seeds = itertools.count(seed)
-        for condition, seconds in itertools.cycle(schedule) if loop else schedule:
+        for phase in itertools.cycle(schedule) if loop else schedule:
+            condition, seconds, load, severity = (tuple(phase) + (load_pct, 1.0))[:4]
             left = seconds
             while left > 1e-9:
                 part = min(segment_s, left)
-                yield simulate(profile, condition, load_pct, part, seed=next(seeds))
+                yield simulate(profile, condition, load, part, seed=next(seeds), severity=severity)
                 left -= part
     return RecordSource(f"simulated:{drive}", drive, records, profile.sampling.rate_hz, block_s, speedup)

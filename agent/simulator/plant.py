@@ -47,7 +47,7 @@ def derived(par):
     return list(par[:N_PAR]) + extra
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _currents(psi_d, psi_q, th_e, par):
     """Currents (A) from flux linkages (Wb) at electrical angle ``th_e`` (rad)."""
     psi_pm = par[PSI_M]
@@ -57,7 +57,7 @@ def _currents(psi_d, psi_q, th_e, par):
     return (psi_d - psi_pm) * par[INV_LD], psi_q * par[INV_LQ0] * (1.0 + par[SAT_A] * r * r)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _cos_sin(th_e, th_k, c_k, s_k):
     """cos, sin of ``th_e`` from cos, sin of a nearby angle ``th_k`` (rad).
 
@@ -73,7 +73,7 @@ def _cos_sin(th_e, th_k, c_k, s_k):
     return c_k * cd - s_k * sd, s_k * cd + c_k * sd
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _deriv(psi_d, psi_q, w1, w2, th1, th2, v_a, v_b, R_s, T_1, T_2, par, th_k, c_k, s_k):
     """Time derivatives of (psi_d, psi_q, omega_1, omega_2, theta_1, theta_2).
 
@@ -97,7 +97,7 @@ def _deriv(psi_d, psi_q, w1, w2, th1, th2, v_a, v_b, R_s, T_1, T_2, par, th_k, c
             w1, w2)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _dist(terms, th1, th2):
     """Disturbance torques (N m) on the motor side (node 0) and the driven side (node 1)."""
     T_1, T_2 = 0.0, 0.0
@@ -118,7 +118,7 @@ def _dist(terms, th1, th2):
     return T_1, T_2
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def run(par, x0, c0, terms, noise_drive, i_ab, v_ab, vref_ab, theta_e, omega_e):
     """Simulate ``i_ab.shape[1]`` samples; fills the output arrays in place.
 

@@ -1,0 +1,280 @@
+"""The agent service: sources -> pipelines -> sinks, with lifecycle, health and signals.
+
+Threads: one reader per source (``Source.read`` with a timeout, blocks into a bounded per-drive
+queue; the oldest block is dropped and counted when the pipeline falls behind), and one DSP
+thread that runs every drive's :class:`agent.pipeline.DriveMonitor`, hands each status to the
+sinks (Modbus server for the PLC, zenoh, journal; ``publish`` never blocks), applies PLC
+commands and pings the systemd watchdog from the place that proves progress.
+
+Order (as in Telegraf): sinks open before sources, sources close before sinks; ``READY=1`` is
+sent only when everything is open. SIGTERM/SIGINT stop cleanly (journal flushed), SIGHUP
+reloads the model library.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import signal
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from agent.library import ModelLibrary, Schedule
+from agent.pipeline import DriveMonitor, PipelineConfig
+from agent.runtime import sdnotify
+from agent.runtime.config import Config
+from agent.runtime.journal import Journal, JournalSink
+from protocols.base import Block, DriveStatus, Sink, Source
+
+log = logging.getLogger("pmsm-agent.service")
+
+QUEUE_BLOCKS = 64  #: per drive, ~6 s of 0.1 s blocks
+
+
+def build_source(drive, rate_hz: float) -> Source:
+    """The transport of one ``[[drives]]`` entry."""
+    s, name, profile = drive.source, drive.name, drive.drive_profile
+    if s.kind == "simulated":
+        from protocols.playback import simulated_source
+
+        schedule = [(p.condition, p.seconds, p.load_pct or s.load_pct, p.severity) for p in s.schedule]
+        return simulated_source(profile, schedule, name, seed=s.seed, block_s=s.block_s, speedup=s.speedup,
+                                loop=s.loop)
+    if s.kind == "replay":
+        from protocols.playback import replay_source
+
+        return replay_source([str(f) for f in s.files], name, profile, block_s=s.block_s, speedup=s.speedup,
+                             loop=s.loop)
+    if s.kind == "serial":
+        from protocols.serial_bridge import SerialBridgeSource
+
+        return SerialBridgeSource(s.port, name, rate_hz, s.baud)
+    if s.kind == "can":
+        from protocols.can_bus import CanSource
+
+        extra = {k: v for k, v in (("bitrate", s.bitrate), ("data_bitrate", s.data_bitrate)) if v}
+        return CanSource(s.interface, s.channel, name, s.base_id, s.fd, rate_hz=rate_hz, **extra)
+    if s.kind == "modbus":
+        from protocols.modbus_drive import ModbusSnapshotSource, SnapshotSourceConfig
+
+        span = PipelineConfig().span_windows  # a snapshot must hold a whole span
+        return ModbusSnapshotSource(SnapshotSourceConfig(
+            drive=name, transport="rtu" if s.serial_port else "tcp", host=s.host or "127.0.0.1", port=s.port,
+            serial_port=s.serial_port or "", baudrate=s.baud, device_id=s.unit_id,
+            samples=int(span * 2.0 * rate_hz), request_timeout_s=s.timeout_s, poll_interval_s=s.poll_interval_s))
+    if s.kind == "nidaq":
+        from protocols.nidaq import NidaqSource
+
+        return NidaqSource.from_config(s, name, rate_hz)
+    raise ValueError(f"unknown source kind {s.kind!r}")
+
+
+def pipeline_config(cfg: Config) -> PipelineConfig:
+    p = cfg.pipeline
+    return PipelineConfig(window_s=p.window_s, hop_s=p.hop_s, alarm_hold_s=p.alarm_hold_s,
+                          stale_after_s=p.stale_after_s, learn_windows=p.learn_windows)
+
+
+@dataclass
+class DriveRuntime:
+    name: str
+    source: Source
+    monitor: DriveMonitor
+    blocks: queue.Queue = field(default_factory=lambda: queue.Queue(maxsize=QUEUE_BLOCKS))
+    dropped: int = 0
+    reader: threading.Thread | None = None
+
+
+class Service:
+    """The running agent; :func:`run_service` is the entry point."""
+
+    def __init__(self, cfg: Config, on_transition: Callable[[str, str, dict], None] | None = None):
+        self.cfg = cfg
+        self.on_transition = on_transition or (lambda drive, kind, detail: None)
+        self.stop_event = threading.Event()
+        self._reload = threading.Event()
+        state_dir = Path(cfg.state_dir)
+        state_dir.mkdir(parents=True, exist_ok=True)
+        self.journal = Journal.from_config(cfg)
+        p = cfg.pipeline
+        self.library = ModelLibrary(cfg.library.path or state_dir / "library",
+                                    Schedule(p.schedule_fe_tol_hz, p.schedule_load_tol_pct, p.schedule_hysteresis))
+        pcfg = pipeline_config(cfg)
+        self.drives = {}
+        for d in cfg.drives:
+            monitor = DriveMonitor(d.name, d.drive_profile, self.library, pcfg,
+                                   on_event=lambda kind, detail, name=d.name: self._event(name, kind, detail))
+            self.drives[d.name] = DriveRuntime(d.name, build_source(d, d.drive_profile.sampling.rate_hz), monitor)
+        self.sinks: list[Sink] = [JournalSink(self.journal)]
+        self.plc = None
+        if cfg.modbus_server.enabled:
+            from protocols.modbus_plc import PlcModbusServer
+
+            self.plc = PlcModbusServer(list(self.drives), host=cfg.modbus_server.host, port=cfg.modbus_server.port)
+            self.sinks.append(self.plc)
+        if cfg.zenoh.enabled:
+            from protocols.zenoh_sink import Providers, sink_from_config
+
+            providers = Providers(model=self._q_model, thresholds=self._q_thresholds, spectrum=self._q_spectrum,
+                                  events=self.journal.provider(), diagnostics=self._diagnostics)
+            self.sinks.append(sink_from_config(cfg.zenoh, cfg.agent_id, list(self.drives), providers))
+
+    # -- events and queries ---------------------------------------------------------------------
+    def _event(self, drive: str, kind: str, detail: dict) -> None:
+        if kind in ("learning", "learned", "gap"):
+            self.journal.record("learning" if kind != "gap" else "error", drive, detail={"event": kind, **detail})
+        if kind in ("state", "quality", "learning", "learned"):
+            self.on_transition(drive, kind, detail)
+
+    def _baseline(self, drive: str):
+        name = self.drives[drive].monitor.status.model
+        if not name:
+            raise KeyError(f"{drive}: no model scheduled")
+        return name, self.library.baselines[name]
+
+    def _q_model(self, drive: str, params: dict) -> dict:
+        from agent.modelfile import baseline_to_json
+
+        name, base = self._baseline(drive)
+        doc = baseline_to_json(base)
+        return {"drive": drive, "name": name, "model": doc["model"], "operating_point": doc["operating_point"],
+                "cluster": {k: doc["cluster"][k] for k in ("centre", "cov", "limit", "confidence", "region")}}
+
+    def _q_thresholds(self, drive: str, params: dict) -> dict:
+        name, base = self._baseline(drive)
+        th = base.thresholds
+        return {"drive": drive, "name": name, "freqs_hz": th.freqs_hz.tolist(), "th2": th.th2.tolist(),
+                "th3": th.th3.tolist(), "window_s": th.window_s}
+
+    def _q_spectrum(self, drive: str, params: dict) -> dict:
+        mon = self.drives[drive].monitor
+        spectrum = mon.last_spectrum()
+        if spectrum is None:
+            raise KeyError(f"{drive}: no spectrum yet")
+        name, freqs, amp = spectrum
+        return {"drive": drive, "model": name, "freqs_hz": freqs.tolist(), "amplitude": amp.tolist()}
+
+    def _diagnostics(self, drive: str) -> dict:
+        d = self.drives[drive]
+        return {"source": d.source.stats.as_dict(), "queue": d.blocks.qsize(), "dropped_blocks": d.dropped,
+                "learning": d.monitor.learning, "library": sorted(self.library.baselines)}
+
+    # -- threads --------------------------------------------------------------------------------
+    def _reader(self, d: DriveRuntime) -> None:
+        backoff = 0.5
+        while not self.stop_event.is_set():
+            try:
+                d.source.open()
+                break
+            except Exception as err:  # a transport that is not there yet: retry with backoff
+                d.source.stats.last_error = str(err)
+                log.warning("%s: cannot open source (%s); retrying in %.1f s", d.name, err, backoff)
+                self.stop_event.wait(backoff)
+                backoff = min(2 * backoff, 30.0)
+        while not self.stop_event.is_set():
+            block = d.source.read(timeout=0.2)
+            if block is None:
+                continue
+            while True:
+                try:
+                    d.blocks.put_nowait(block)
+                    break
+                except queue.Full:
+                    try:
+                        d.blocks.get_nowait()
+                        d.dropped += 1
+                    except queue.Empty:
+                        pass
+
+    def _publish(self, status: DriveStatus) -> None:
+        for sink in self.sinks:
+            try:
+                sink.publish(status)
+            except Exception:  # a sink must never take the pipeline down
+                log.exception("sink %s failed", getattr(sink, "name", sink))
+
+    def _dsp_step(self) -> bool:
+        """One pass over the drives; returns True if any block was processed."""
+        busy = False
+        for d in self.drives.values():
+            try:
+                block: Block = d.blocks.get_nowait()
+            except queue.Empty:
+                status = d.monitor.tick()
+                if status is not None:
+                    self._publish(status)
+                continue
+            busy = True
+            for status in d.monitor.process(block):
+                self._publish(status)
+                if status.quality == "no_model" and self.cfg.pipeline.auto_learn and not d.monitor.learning:
+                    d.monitor.start_learning(f"{d.name}_{status.fe_hz:.0f}hz_{status.load_pct:.0f}pct")
+        return busy
+
+    def _commands(self) -> None:
+        if self.plc is None:
+            return
+        for cmd in self.plc.commands():
+            if cmd.kind == "relearn" and cmd.drive in self.drives:
+                mon = self.drives[cmd.drive].monitor
+                st = mon.status
+                mon.start_learning(f"{cmd.drive}_{st.fe_hz:.0f}hz_{st.load_pct:.0f}pct")
+                self.journal.record("learning", cmd.drive, detail={"event": "relearn requested by the PLC"})
+
+    def run(self, max_seconds: float | None = None) -> int:
+        """Open everything, run until stopped (or ``max_seconds``), close everything."""
+        t_end = None if max_seconds is None else time.monotonic() + max_seconds
+        self.journal.record("start", detail={"drives": list(self.drives), "library": sorted(self.library.baselines)})
+        opened = []
+        try:
+            for sink in self.sinks:
+                sink.open()
+                opened.append(sink)
+            for d in self.drives.values():
+                d.reader = threading.Thread(target=self._reader, args=(d,), name=f"source-{d.name}", daemon=True)
+                d.reader.start()
+            sdnotify.ready(f"monitoring {len(self.drives)} drive(s)")
+            while not self.stop_event.is_set():
+                if t_end is not None and time.monotonic() > t_end:
+                    break
+                if self._reload.is_set():
+                    self._reload.clear()
+                    self.library.reload()
+                    self.journal.record("reload", detail={"library": sorted(self.library.baselines)})
+                    sdnotify.notify("READY=1", "STATUS=library reloaded")
+                busy = self._dsp_step()
+                self._commands()
+                sdnotify.watchdog()
+                if not busy:
+                    time.sleep(0.01)
+            return 0
+        finally:
+            sdnotify.stopping("stopping")
+            self.stop_event.set()
+            for d in self.drives.values():
+                if d.reader is not None:
+                    d.reader.join(timeout=2.0)
+                d.source.close()
+            for sink in reversed(opened):
+                try:
+                    sink.close()
+                except Exception:
+                    log.exception("closing %s", getattr(sink, "name", sink))
+            self.journal.record("stop")
+            self.journal.close()
+
+    def install_signal_handlers(self) -> None:
+        signal.signal(signal.SIGTERM, lambda *_: self.stop_event.set())
+        signal.signal(signal.SIGINT, lambda *_: self.stop_event.set())
+        signal.signal(signal.SIGHUP, lambda *_: (sdnotify.reloading("reloading the model library"), self._reload.set()))
+
+
+def run_service(cfg: Config, max_seconds: float | None = None, on_transition=None) -> int:
+    """``pmsm-agent run``: the service until SIGTERM (or ``max_seconds``)."""
+    service = Service(cfg, on_transition)
+    if threading.current_thread() is threading.main_thread():
+        service.install_signal_handlers()
+    return service.run(max_seconds)
