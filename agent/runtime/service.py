@@ -74,8 +74,8 @@ def build_source(drive, rate_hz: float) -> Source:
 
 def pipeline_config(cfg: Config) -> PipelineConfig:
     p = cfg.pipeline
-    return PipelineConfig(window_s=p.window_s, hop_s=p.hop_s, alarm_hold_s=p.alarm_hold_s,
-                          stale_after_s=p.stale_after_s, learn_windows=p.learn_windows)
+    return PipelineConfig(window_s=p.window_s, hop_s=p.hop_s, persist_hops=p.persist_hops,
+                          alarm_hold_s=p.alarm_hold_s, stale_after_s=p.stale_after_s, learn_windows=p.learn_windows)
 
 
 @dataclass
@@ -236,6 +236,7 @@ class Service:
             for d in self.drives.values():
                 d.reader = threading.Thread(target=self._reader, args=(d,), name=f"source-{d.name}", daemon=True)
                 d.reader.start()
+            watchdog = sdnotify.Watchdog()
             sdnotify.ready(f"monitoring {len(self.drives)} drive(s)")
             while not self.stop_event.is_set():
                 if t_end is not None and time.monotonic() > t_end:
@@ -247,7 +248,7 @@ class Service:
                     sdnotify.notify("READY=1", "STATUS=library reloaded")
                 busy = self._dsp_step()
                 self._commands()
-                sdnotify.watchdog()
+                watchdog.ping()
                 if not busy:
                     time.sleep(0.01)
             return 0

@@ -1,0 +1,1 @@
+"""The thin runtime around the signal chain: config, journal, systemd notification, CLI, service."""
