@@ -116,7 +116,7 @@ def cmd_identify(args) -> None:
     t0 = time.perf_counter()
     base = identify_baseline(recs, profile, form=args.form, robust=args.robust, window_s=args.window,
                              confidence=args.confidence, region=args.region, spectrum_rule=args.spectrum_rule,
-                             progress=_progress)
+                             prefilter_hz=args.prefilter, progress=_progress)
     save_baseline(base, args.out)
     m = base.model
     names_d, names_q = (tuple(t.name for t in ts) for ts in m.terms)
@@ -205,6 +205,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--confidence", type=float, default=0.95, help="parameter-cluster region (default 0.95)")
     s.add_argument("--region", choices=("prediction", "chi2"), default="prediction",
                    help="cluster region: Hotelling prediction ellipse (default) or chi-square")
+    s.add_argument("--prefilter", type=float, metavar="HZ",
+                   help="low-pass both sides of the regressions at HZ (removes current-sensor noise bias)")
     s.add_argument("--spectrum-rule", choices=("pair", "line"), default="pair",
                    help="a fault needs both sidebands fe -+ k f above threshold (pair, default) or one line (line)")
     s.add_argument("data", nargs="+", help="healthy records")
