@@ -14,7 +14,7 @@ $(BIN)/python:
 	$(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 
-$(VENV)/.stamp-run: $(BIN)/python requirements.lock pyproject.toml
+$(VENV)/.stamp-run: $(BIN)/python requirements.lock pyproject.toml agent/_kernels.c
 	$(BIN)/pip install -q -r requirements.lock
 	$(BIN)/pip install -q --no-deps --no-build-isolation -e .
 	touch $@
@@ -35,5 +35,10 @@ test-full: setup-test
 bench: setup-test
 	$(BIN)/python -m bench.run
 
+docs: setup
+	$(BIN)/python -m firmware_if.plc_registers --write docs/registers.md
+	$(BIN)/python -m firmware_if.modbus_capture --write docs/modbus_capture.md
+
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info
+	rm -f agent/_kernels.*.so
