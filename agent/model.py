@@ -15,7 +15,7 @@ where a column is either a *state* term (a dq current, optionally multiplied by 
   q: [i_q, w i_d, v_q, w] -> [1 - Rs Ts/Lq, -Ld Ts/Lq, Ts/Lq, -psi_m Ts/Lq]
 
 Because state terms are explicit, the same parameters give the one-step predictor and the
-free-run simulation x(k+1) = (A0 + omega_e(k) A1) x(k) + u(k), compiled with numba.
+free-run simulation x(k+1) = (A0 + omega_e(k) A1) x(k) + u(k) (a C kernel, agent/kernels.py).
 
 An *output* term (``Term(output=True)``, e.g. a current-sensor offset) acts on the measurement,
 not on the dynamics: the measured current is y(k) = x(k) + o(k) with o(k) = sum_j theta_j c_j(k)
@@ -28,10 +28,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Callable
 
-import numba
 import numpy as np
 
 from agent.frames import abc_to_dq
+from agent.kernels import simulate_ltv
 
 FORMS = ("lumped", "speed")
 
@@ -184,8 +184,8 @@ class DQModel:
         x0 = sig.i_dq[:, 0] if x0 is None else np.asarray(x0, dtype=float)
         o = self.output(sig)
         if o is None:
-            return _simulate_ltv(a0, a1, np.ascontiguousarray(sig.omega_e), self.exogenous(sig), x0)
-        return _simulate_ltv(a0, a1, np.ascontiguousarray(sig.omega_e), self.exogenous(sig), x0 - o[:, 0]) + o
+            return simulate_ltv(a0, a1, sig.omega_e, self.exogenous(sig), x0)
+        return simulate_ltv(a0, a1, sig.omega_e, self.exogenous(sig), x0 - o[:, 0]) + o
 
     def spectral_radius(self, omega_e: float) -> float:
         """Largest |eigenvalue| of the state matrix at speed ``omega_e`` (rad/s); < 1 means stable."""
@@ -248,18 +248,6 @@ def lumped_params(form: str, ts: float, rs: float, ld: float, lq: float, psi_m: 
         d = [1 - rs * ts / ld, lq * ts / ld, ts / ld]
         q = [1 - rs * ts / lq, -ld * ts / lq, ts / lq, -psi_m * ts / lq]
     return np.array(d), np.array(q)
-
-
-@numba.njit(cache=True)
-def _simulate_ltv(a0, a1, omega, u, x0):
-    n = omega.size
-    x = np.empty((2, n))
-    x[0, 0], x[1, 0] = x0[0], x0[1]
-    for k in range(n - 1):
-        d, q, w = x[0, k], x[1, k], omega[k]
-        x[0, k + 1] = (a0[0, 0] + w * a1[0, 0]) * d + (a0[0, 1] + w * a1[0, 1]) * q + u[0, k]
-        x[1, k + 1] = (a0[1, 0] + w * a1[1, 0]) * d + (a0[1, 1] + w * a1[1, 1]) * q + u[1, k]
-    return x
 
 
 # --- transmission (eqs. 10-12, 15) -------------------------------------------------------------

@@ -86,7 +86,10 @@ class DriveMonitor:
         self.pll = PLL(self.rate, profile.rated_fe_hz)
         self.status = DriveStatus(drive)
         self._below_since: float | None = None
+        # persistence and hold outlive gaps: a snapshot source (one span per stream) must still be
+        # able to raise a level, and a segmented stream to drop it after alarm_hold_s
         self._recent: list[str] = []
+        self._clock = 0  # samples since the monitor started (all streams): the hold's time base
         self._builder: BaselineBuilder | None = None
         self._learn_name = ""
         self.reset_stream()
@@ -102,7 +105,6 @@ class DriveMonitor:
         self._next_sample: int | None = None
         self._theta_last = 0.0
         self._bad_until = 0  # stream sample until which spans contain NaN or saturated samples
-        self._recent = []
         self._spectra: dict[tuple[str, int], np.ndarray] = {}  # (model, window end sample) -> spectrum
         self._q_info: dict[int, tuple] = {}  # hop end sample -> (model, q-axis X^T X, X^T y)
         self.pll.reset()
@@ -110,6 +112,8 @@ class DriveMonitor:
 
     def process(self, block: Block) -> list[DriveStatus]:
         """Append a block; every ``hop_s`` of new samples assess the last span."""
+        if block.n == 0:  # nothing to add (an empty block must not take the DSP thread down)
+            return []
         if self._next_sample is not None and block.first_sample != self._next_sample:
             self.on_event("gap", {"expected": self._next_sample, "got": block.first_sample})
             self.reset_stream()
@@ -161,6 +165,7 @@ class DriveMonitor:
         self._write = end % self.n_span
         self._filled = min(self.n_span, self._filled + n)
         self._samples += n
+        self._clock += n
 
     def tick(self, now: float | None = None) -> DriveStatus | None:
         """Call periodically: after ``stale_after_s`` without input the quality becomes ``stale``."""
@@ -265,7 +270,7 @@ class DriveMonitor:
         if STATES.index(raw) >= STATES.index(held):
             self._below_since = None
             return held
-        now = self._samples / self.rate
+        now = self._clock / self.rate
         self._below_since = now if self._below_since is None else self._below_since
         if now - self._below_since >= self.config.alarm_hold_s:
             self._below_since = None

@@ -39,10 +39,10 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 
 from agent.frames import CLARKE
+from agent.kernels import pll_run
 
 #: Damping of the loop.
 ZETA = 1.0 / math.sqrt(2.0)
@@ -52,45 +52,6 @@ BW_PER_FN = math.sqrt(1.0 + 2.0 * ZETA**2 + math.sqrt((1.0 + 2.0 * ZETA**2) ** 2
 LOCK_FILTER_HZ = 50.0
 #: Lock is lost when the filtered phase error exceeds this multiple of ``lock_threshold_rad``.
 UNLOCK_FACTOR = 4.0
-
-
-@numba.njit(cache=True)
-def _pll_kernel(x_abc, clarke, par, zi):
-    """Run the loop over ``x_abc`` ``(3, N)`` from state ``zi`` (6,); returns theta, omega, zf.
-
-    ``par`` = (Ts, wn_track, wn_acq, taper per sample, lock-filter coefficient, lock threshold,
-    unlock threshold, lock samples, min amplitude); ``zi``/``zf`` = (angle, integrator omega,
-    filtered error, samples below threshold, locked 0/1, natural frequency wn).
-    """
-    ts, wn_trk, wn_acq, taper, a_ef, thr, thr_off, n_lock, amin = par
-    th, om, ef, cnt, lck, wn = zi
-    n = x_abc.shape[1]
-    theta, omega = np.empty(n), np.empty(n)
-    two_pi = 2.0 * math.pi
-    for k in range(n):
-        xa, xb, xc = x_abc[0, k], x_abc[1, k], x_abc[2, k]
-        al = clarke[0, 0] * xa + clarke[0, 1] * xb + clarke[0, 2] * xc
-        be = clarke[1, 0] * xa + clarke[1, 1] * xb + clarke[1, 2] * xc
-        c, s = math.cos(th), math.sin(th)
-        d = al * c + be * s
-        q = -al * s + be * c
-        e = 0.0
-        if math.isfinite(d) and math.isfinite(q) and math.hypot(d, q) > amin:
-            e = math.atan2(-d, q)  # exact phase error of the +q alignment, amplitude-free
-            ef += a_ef * (e - ef)
-            if lck == 0.0:
-                cnt = cnt + 1.0 if abs(ef) < thr else 0.0
-                lck = 1.0 if cnt >= n_lock else 0.0
-            elif abs(ef) > thr_off:
-                lck, cnt, wn = 0.0, 0.0, wn_acq
-        if lck != 0.0 and wn > wn_trk:
-            wn = max(wn * taper, wn_trk)
-        om += wn * wn * ts * e
-        theta[k] = th
-        omega[k] = om
-        th += ts * (om + 2.0 * ZETA * wn * e)
-        th -= two_pi * math.floor((th + math.pi) / two_pi)
-    return theta, omega, np.array([th, om, ef, cnt, lck, wn])
 
 
 class PLL:
@@ -114,11 +75,12 @@ class PLL:
         ts = 1.0 / rate_hz
         self.rate_hz, self.f_nominal_hz, self.theta0 = float(rate_hz), float(f_nominal_hz), theta0
         self._wn_acq = 2.0 * math.pi * lock_bandwidth_hz / BW_PER_FN
+        # the loop runs in C (agent.kernels.pll_run), which documents this vector and the state's
         self._par = np.array([
             ts, 2.0 * math.pi * bandwidth_hz / BW_PER_FN, self._wn_acq,
             math.exp(-ts / shift_time_s), -math.expm1(-2.0 * math.pi * LOCK_FILTER_HZ * ts),
             lock_threshold_rad, UNLOCK_FACTOR * lock_threshold_rad,
-            max(1.0, round(lock_time_s * rate_hz)), min_amplitude,
+            max(1.0, round(lock_time_s * rate_hz)), min_amplitude, ZETA,
         ])
         self._clarke = np.ascontiguousarray(CLARKE[:2])
         self.reset()
@@ -138,7 +100,7 @@ class PLL:
         x = np.ascontiguousarray(x_abc, dtype=float)
         if x.ndim != 2 or x.shape[0] != 3:
             raise ValueError(f"x_abc must be shaped (3, N), got {x.shape}")
-        theta, omega, self._state = _pll_kernel(x, self._clarke, self._par, self._state)
+        theta, omega, self._state = pll_run(x, self._clarke, self._par, self._state)
         return theta, omega
 
 

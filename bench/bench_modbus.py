@@ -19,7 +19,7 @@ import numpy as np
 from protocols.base import DriveStatus
 from protocols.modbus_drive import DriveModbusEmulator, ModbusSnapshotSource, SnapshotSourceConfig
 from protocols.modbus_plc import PlcModbusServer
-from protocols.pty_null_modem import PtyNullModem
+from protocols.ptyutil import PtyNullModem
 
 FS = 25_000.0
 

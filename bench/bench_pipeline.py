@@ -84,7 +84,7 @@ def run(hours: float = 0.25, throughput_s: float = 60.0) -> dict:
     monitor = DriveMonitor("d1", profile, lib, config)
     healthy = [_frames(simulate(profile, "healthy", 80.0, 20.0, seed=8000 + j)) for j in range(3)]
 
-    # throughput, parsing included (the pipeline's numba kernels are compiled by the first pass)
+    # throughput, parsing included (the first pass warms up caches and the model library)
     first, _ = _stream(monitor, healthy[0], rate, 0)
     t0 = time.process_time()
     signal_s = 0.0

@@ -79,10 +79,10 @@ def _can(n: int) -> tuple[float, float]:
     src = CanSource("virtual", "unused", "bench", block_samples=2500)
     t0 = time.perf_counter()
     for m in msgs:
-        src._on_message(m)
+        src._consume(m)
     src._flush()
     decode = n / (time.perf_counter() - t0)
-    assert sum(b.n for b in src._ready) == n
+    assert sum(b.n for b in src._asm.ready) == n
     channel = f"bench-{uuid.uuid4().hex[:6]}"
     src = CanSource("virtual", channel, "bench", block_samples=2500)
     src.open()

@@ -32,15 +32,13 @@ documentation generated from :data:`REGISTERS`.
 
 from __future__ import annotations
 
-import argparse
-import sys
 from dataclasses import dataclass
 from enum import IntEnum
-from pathlib import Path
 
 import numpy as np
 
-from firmware_if.modbus_map import RegisterDef, check_layout, decode_block, encode_block, markdown_table
+from firmware_if.modbus_map import (RegisterDef, check_layout, decode_block, encode_block, markdown_table,
+                                    render_main)
 
 LAYOUT_VERSION = 1
 DEVICE_ID = 1  #: default unit id of the drive
@@ -304,22 +302,8 @@ _register_c_header()
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m firmware_if.modbus_capture",
-                                 description="Render the drive capture-buffer register map to Markdown.")
-    ap.add_argument("--write", metavar="PATH", help="write the Markdown to PATH (default: stdout)")
-    ap.add_argument("--check", metavar="PATH", help="exit 1 when PATH differs from the generated text")
-    args = ap.parse_args(argv)
-    text = render_markdown()
-    if args.check:
-        ok = Path(args.check).is_file() and Path(args.check).read_text() == text
-        print(f"{args.check}: {'up to date' if ok else 'STALE, regenerate with --write'}", file=sys.stderr)
-        return 0 if ok else 1
-    if args.write:
-        Path(args.write).write_text(text)
-        print(args.write)
-    else:
-        sys.stdout.write(text)
-    return 0
+    return render_main(render_markdown, argv, prog="python -m firmware_if.modbus_capture",
+                       description="Render the drive capture-buffer register map to Markdown.")
 
 
 if __name__ == "__main__":

@@ -19,10 +19,13 @@ Conventions (Modbus application protocol v1.1b3 and common PLC practice):
 
 from __future__ import annotations
 
+import argparse
 import math
 import struct
-from collections.abc import Iterable, Mapping, Sequence
+import sys
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 TABLES = ("IR", "HR")  #: input registers, holding registers (also the documentation order)
 #: type -> (registers, struct code, min raw, max raw)
@@ -208,3 +211,23 @@ def markdown_table(defs: Iterable[RegisterDef], *, base: int = 0, offset_column:
             row.insert(0, f"+{d.address}")
         lines.append("| " + " | ".join(row) + " |")
     return "\n".join(lines)
+
+
+def render_main(render: Callable[[], str], argv: list[str] | None, *, prog: str, description: str) -> int:
+    """The command line of a map module: print ``render()``, ``--write PATH`` it, or ``--check PATH``
+    (exit 1 when the file differs from the generated text)."""
+    ap = argparse.ArgumentParser(prog=prog, description=description)
+    ap.add_argument("--write", metavar="PATH", help="write the Markdown to PATH (default: stdout)")
+    ap.add_argument("--check", metavar="PATH", help="exit 1 when PATH differs from the generated text")
+    args = ap.parse_args(argv)
+    text = render()
+    if args.check:
+        ok = Path(args.check).is_file() and Path(args.check).read_text() == text
+        print(f"{args.check}: {'up to date' if ok else 'STALE, regenerate with --write'}", file=sys.stderr)
+        return 0 if ok else 1
+    if args.write:
+        Path(args.write).write_text(text)
+        print(args.write)
+    else:
+        sys.stdout.write(text)
+    return 0

@@ -9,7 +9,7 @@ in ``stats`` and log it, reconnect with backoff, and return ``None`` (source) or
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import Protocol, Self, runtime_checkable
 
 import numpy as np
 
@@ -53,6 +53,17 @@ class SourceStats:
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
+
+
+class OpenClose:
+    """Mixin for sources and sinks: ``with x:`` calls ``x.open()`` and ``x.close()``."""
+
+    def __enter__(self) -> Self:
+        self.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 @runtime_checkable

@@ -42,7 +42,8 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 from firmware_if import modbus_capture as cap
 from firmware_if.modbus_capture import CaptureError, CaptureHeader, Command, Status
 from protocols._aio import LoopThread
-from protocols.base import Block, SourceStats
+from protocols.base import Block, OpenClose, SourceStats
+from protocols.streaming import Backoff, BlockAssembler
 
 log = logging.getLogger(__name__)
 
@@ -141,7 +142,7 @@ class _Throttle:
         return False
 
 
-class ModbusSnapshotSource:
+class ModbusSnapshotSource(OpenClose):
     """A :class:`protocols.base.Source` reading snapshots from the drive's capture buffer."""
 
     def __init__(self, config: SnapshotSourceConfig):
@@ -150,15 +151,15 @@ class ModbusSnapshotSource:
         self.stats = ModbusSourceStats()
         self._client: ModbusTcpClient | ModbusSerialClient | None = None
         self._ever_connected = False
-        self._next_connect = 0.0
-        self._backoff = config.backoff_initial_s  # link: connect / timeouts (reset by a good response)
-        self._capture_backoff = config.backoff_initial_s  # capture restarts (reset by a good snapshot)
+        # link: connect / timeouts (reset by a good response); capture restarts (reset by a good snapshot)
+        self._backoff = Backoff(config.backoff_initial_s, config.backoff_max_s)
+        self._capture_backoff = Backoff(config.backoff_initial_s, config.backoff_max_s)
+        self._asm = BlockAssembler(config.drive, 0.0, self.stats)
         self._not_before = 0.0  # earliest time of the next step (poll interval, retry backoff)
         self._retries = 0
         self._throttle = _Throttle()
         self._counter_last: int | None = None  # drive sample counter (raw UINT32) of the last snapshot
         self._counter_abs = 0
-        self._next_first: int | None = None
         self._hdr_rate = 0.0  # sample rate from the last header (expected capture time)
         self._last_seq: int | None = None  # SEQ of the last snapshot returned
         self._restart()
@@ -207,13 +208,6 @@ class ModbusSnapshotSource:
             self._client = None
         self._restart()
 
-    def __enter__(self):
-        self.open()
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
-
     # ---- connection
 
     def _make_client(self):
@@ -229,10 +223,10 @@ class ModbusSnapshotSource:
         client = self._client
         if client.connected:
             return True
-        now = time.monotonic()
-        if now < self._next_connect:
-            time.sleep(max(0.0, min(self._next_connect, deadline) - now))
-            if time.monotonic() < self._next_connect:
+        now, next_try = time.monotonic(), self._backoff.next_try
+        if now < next_try:
+            time.sleep(max(0.0, min(next_try, deadline) - now))
+            if time.monotonic() < next_try:
                 return False
         ok, why = False, "connect failed"
         try:
@@ -247,11 +241,9 @@ class ModbusSnapshotSource:
             self._restart()  # the backoff is reset by the first good response, not by connect
             return True
         self.stats.last_error = why
-        self._next_connect = time.monotonic() + self._backoff
+        wait = self._backoff.failed()
         if self._throttle("connect"):
-            log.warning("%s: cannot connect to the drive (%s); retry in %.2f s", self.name,
-                        self._where(), self._backoff)
-        self._backoff = min(2 * self._backoff, self.config.backoff_max_s)
+            log.warning("%s: cannot connect to the drive (%s); retry in %.2f s", self.name, self._where(), wait)
         return False
 
     def _where(self) -> str:
@@ -268,8 +260,7 @@ class ModbusSnapshotSource:
                 self._client.close()
             except Exception:  # noqa: BLE001
                 pass
-        self._next_connect = time.monotonic() + self._backoff
-        self._backoff = min(2 * self._backoff, self.config.backoff_max_s)
+        self._backoff.failed()
         self._restart()
 
     # ---- one Modbus transaction
@@ -291,14 +282,12 @@ class ModbusSnapshotSource:
                 log.warning("%s: drive answered %s with Modbus exception %d", self.name, what, code)
             self._retries += 1
             if self._retries > self.config.max_retries:
-                self._restart()
-                self._not_before = time.monotonic() + self._capture_backoff
-                self._capture_backoff = min(2 * self._capture_backoff, self.config.backoff_max_s)
+                self._restart_later()
             else:
                 self._not_before = time.monotonic() + self.config.poll_interval_s
             return None
         self._retries = 0
-        self._backoff = self.config.backoff_initial_s
+        self._backoff.reset()
         self.stats.frames += 1
         return rr
 
@@ -421,9 +410,13 @@ class ModbusSnapshotSource:
         if self._throttle("capture"):
             log.warning("%s: capture failed (%s); resetting the drive's capture buffer", self.name, why)
         self._call("reset", self._client.write_register, cap.address("COMMAND"), int(Command.RESET))
+        self._restart_later()
+
+    def _restart_later(self) -> None:
+        """Restart the capture sequence after the capture backoff."""
         self._restart()
-        self._not_before = time.monotonic() + self._capture_backoff
-        self._capture_backoff = min(2 * self._capture_backoff, self.config.backoff_max_s)
+        self._capture_backoff.failed()
+        self._not_before = self._capture_backoff.next_try
 
     def _make_block(self) -> Block:
         hdr = self._hdr
@@ -435,18 +428,11 @@ class ModbusSnapshotSource:
         else:
             self._counter_abs += (hdr.first_sample - self._counter_last) & 0xFFFFFFFF
         self._counter_last = hdr.first_sample
-        first = self._counter_abs
-        if self._next_first is not None and first != self._next_first:
-            self.stats.gaps += 1
-        self._next_first = first + n
         self._last_seq = hdr.seq
-        block = Block(drive=self.name, rate_hz=float(hdr.rate_hz), v_abc=phys[:3], i_abc=phys[3:],
-                      first_sample=first, seq=self.stats.blocks)
-        self.stats.blocks += 1
-        self.stats.samples += n
+        block = self._asm.block(phys[:3], phys[3:], self._counter_abs, rate_hz=hdr.rate_hz)
         self.stats.last_snapshot_s = time.monotonic() - self._t_trigger
         self.stats.last_transfer_s = self._t_transfer
-        self._capture_backoff = self.config.backoff_initial_s
+        self._capture_backoff.reset()
         return block
 
 

@@ -38,7 +38,7 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 
 from firmware_if import plc_registers as reg
 from protocols._aio import LoopThread
-from protocols.base import QUALITY_CODES, STATE_CODES, DriveStatus
+from protocols.base import QUALITY_CODES, STATE_CODES, DriveStatus, OpenClose
 
 log = logging.getLogger(__name__)
 
@@ -91,7 +91,7 @@ def status_values(status: DriveStatus) -> dict:
             "MODEL_ID": reg.model_id(status.model or "")}
 
 
-class PlcModbusServer:
+class PlcModbusServer(OpenClose):
     """Modbus TCP server for the PLC, unit id 1, one register block per drive.
 
     ``drives``: drive names in block order (drive ``i`` at IR ``16 + 16*i``). ``port=0`` binds
@@ -194,13 +194,6 @@ class PlcModbusServer:
             except (TimeoutError, RuntimeError) as err:
                 log.warning("PLC server: shutdown: %s", err)
         self._loop.stop()
-
-    def __enter__(self) -> PlcModbusServer:
-        self.open()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
     # ---- agent-side API
 

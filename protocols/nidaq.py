@@ -59,7 +59,8 @@ from typing import Any
 
 import numpy as np
 
-from protocols.base import Block, SourceStats
+from protocols.base import Block, OpenClose, SourceStats
+from protocols.streaming import Backoff, BlockAssembler
 
 log = logging.getLogger(__name__)
 
@@ -112,7 +113,7 @@ class _Run:
         self.t_last = time.monotonic()  # wall time of the last read (or of the start)
 
 
-class NidaqSource:
+class NidaqSource(OpenClose):
     """Phase voltages and currents of one drive from an NI-DAQmx task (see the module docstring)."""
 
     def __init__(self, voltage_channels: str, current_channels: str, drive: str,
@@ -162,10 +163,8 @@ class NidaqSource:
         self._pending: tuple[int | None, str] | None = None  # a fault reported by a callback
         self._wanted = False
         self._next_sample = 0  # stream index of the next sample the callback will read
-        self._expected = 0  # stream index after the last delivered block
-        self._block_seq = 0
-        self._backoff = self.backoff_min
-        self._next_try = 0.0
+        self._asm = BlockAssembler(drive, self.rate_hz, self.stats)  # delivered blocks: seq, gaps, counters
+        self._backoff = Backoff(self.backoff_min, self.backoff_max)
         self._t_data = 0.0  # wall time of the last data of the previous run (reconnect estimate)
 
     @classmethod
@@ -192,8 +191,7 @@ class NidaqSource:
                 raise
             except Exception as err:  # noqa: BLE001 - DaqError, DaqNotFoundError, OSError, ...
                 self._note_error(err)
-                self._next_try = time.monotonic() + self._backoff
-                self._backoff = min(self.backoff_max, 2.0 * self._backoff)
+                self._backoff.failed()
                 raise ConnectionError(f"{self.name}: cannot start the DAQmx task: {self.stats.last_error}"
                                       f"{_driver_hint(err)}") from err
 
@@ -211,7 +209,7 @@ class NidaqSource:
                         return None
                     if self._pending is None:
                         down = self._task is None
-                        wait = max(0.0, self._next_try - time.monotonic()) if down else self.stall_s / 4
+                        wait = max(0.0, self._backoff.next_try - time.monotonic()) if down else self.stall_s / 4
                         self._cond.wait(min(left, max(wait, 0.001)))
             return self._deliver(first, raw)
         except Exception as err:  # noqa: BLE001 - a source never raises out of read
@@ -227,13 +225,6 @@ class NidaqSource:
                 self._queue.clear()
                 self._pending = None
                 self._cond.notify_all()
-
-    def __enter__(self) -> NidaqSource:
-        self.open()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
     @property
     def connected(self) -> bool:
@@ -298,7 +289,7 @@ class NidaqSource:
             if fault is not None:
                 self._handle_fault(*fault)
             elif self._task is None:
-                if time.monotonic() >= self._next_try:
+                if self._backoff.due():
                     self._reconnect()
             else:
                 run = self._run
@@ -318,7 +309,7 @@ class NidaqSource:
             except Exception as err:  # noqa: BLE001 - fall back to a full reconnect
                 text = self._note_error(err)
         self.counters["daq_errors"] += 1
-        log.warning("%s: %s; recreating the task in %.2f s", self.name, text, self._backoff)
+        log.warning("%s: %s; recreating the task in %.2f s", self.name, text, self._backoff.delay)
         self._down()
 
     def _stalled(self, run: _Run) -> None:
@@ -337,8 +328,7 @@ class NidaqSource:
 
     def _down(self) -> None:
         self._teardown()
-        self._next_try = time.monotonic() + self._backoff
-        self._backoff = min(self.backoff_max, 2.0 * self._backoff)
+        self._backoff.failed()
 
     def _reconnect(self) -> None:
         jump = max(1, round((time.monotonic() - self._t_data) * self.rate_hz))
@@ -347,10 +337,9 @@ class NidaqSource:
         except Exception as err:  # noqa: BLE001
             self.counters["daq_errors"] += 1
             self._note_error(err)
+            wait = self._backoff.failed()
             log.warning("%s: cannot recreate the task: %s (next try in %.2f s)", self.name,
-                        self.stats.last_error, self._backoff)
-            self._next_try = time.monotonic() + self._backoff
-            self._backoff = min(self.backoff_max, 2.0 * self._backoff)
+                        self.stats.last_error, wait)
             return
         self.stats.reconnects += 1
         log.info("%s: DAQmx task running again", self.name)
@@ -388,7 +377,7 @@ class NidaqSource:
                 self._run = None
             _quiet(task.close)
             raise
-        self._backoff = self.backoff_min
+        self._backoff.reset()
 
     def _restart(self) -> None:
         """Stop and start the same task after a buffer overrun; advance the stream index."""
@@ -443,17 +432,10 @@ class NidaqSource:
             log.warning("%s: %s", self.name, self.rate_warning)
 
     def _deliver(self, first: int, raw: np.ndarray) -> Block:
-        n = raw.shape[1]
-        if first != self._expected:
-            self.stats.gaps += 1
-            log.info("%s: gap of %d samples before sample %d", self.name, first - self._expected, first)
-        self._expected = first + n
-        blk = Block(drive=self.drive, rate_hz=self.rate_hz, v_abc=raw[0:3], i_abc=raw[3:6] * self.current_scale,
-                    first_sample=first, seq=self._block_seq)
-        self._block_seq += 1
-        self.stats.blocks += 1
-        self.stats.samples += n
-        return blk
+        expected = self._asm.next_sample
+        if first != expected:
+            log.info("%s: gap of %d samples before sample %d", self.name, first - expected, first)
+        return self._asm.block(raw[0:3], raw[3:6] * self.current_scale, first, rate_hz=self.rate_hz)
 
     def _note_error(self, err: BaseException) -> str:
         self.stats.last_error = _err_text(err)

@@ -5,7 +5,10 @@ hot-pluggable port.
   serial port at ``path`` (what ``serial.serial_for_url(path)`` opens) and the other way round.
   The pty keeps its own slave fd open so the master never sees EIO while no client is attached.
 * :class:`NullModem`: two ptys joined by a byte-copy thread, so two programs that both open a
-  serial *path* (a device emulator and the agent) talk to each other, like socat's pty pair.
+  serial *path* (a device emulator and the agent) talk to each other, like socat's pty pair;
+  ``unplug()``/``plug()`` cut and restore the cable. :class:`PtyNullModem` is the variant the
+  Modbus RTU tests use (opened by ``with``, ends ``port_a``/``port_b``, drops what the far side
+  does not read).
 * :class:`PluggablePort`: a stable symlink (like ``/dev/serial/by-id/...``) to a pty that can be
   unplugged (pty closed, link removed: the client's reads fail with EIO) and replugged (a new
   pty behind the same link).
@@ -16,11 +19,15 @@ read the other side (:func:`write_all` does the chunking with ``select``).
 
 from __future__ import annotations
 
+import errno
+import logging
 import os
 import select
 import threading
 import tty
 from pathlib import Path
+
+log = logging.getLogger(__name__)
 
 
 def write_all(fd: int, data: bytes, stop: threading.Event | None = None, chunk: int = 256,
@@ -72,49 +79,122 @@ class Pty:
 
 
 class NullModem:
-    """Two ptys cross-connected by a copy thread: a client of ``path_a`` talks to one of ``path_b``."""
+    """Two ptys cross-connected by a copy thread: a client of ``path_a`` talks to one of ``path_b``.
 
-    def __init__(self, chunk: int = 1024) -> None:
-        self.a, self.b = Pty(), Pty()
+    Opened on construction (``start=False``: by :meth:`open` or ``with``). ``unplug()`` drops
+    bytes in both directions (a cut cable) until ``plug()``. When the far side does not read
+    (its pty buffer is full) the copy waits for it, or with ``drop_when_full`` drops the bytes;
+    dropped bytes are counted in :attr:`dropped`. No timing is emulated: baud rate and the RTU
+    t3.5 gap mean nothing on a pty. Each pty keeps its slave end open (raw mode), so a client
+    closing and reopening its port never makes the master side fail with EIO.
+    """
+
+    def __init__(self, chunk: int = 1024, *, drop_when_full: bool = False, start: bool = True) -> None:
         self.chunk = chunk
+        self.drop_when_full = drop_when_full
+        self.a: Pty | None = None
+        self.b: Pty | None = None
+        self.copied = 0  #: bytes copied
+        self.dropped = 0  #: bytes dropped (unplugged, or far side full with ``drop_when_full``)
+        self._plugged = threading.Event()
+        self._plugged.set()
         self._stop = threading.Event()
-        self.bytes_copied = 0
-        self._thread = threading.Thread(target=self._run, name="null-modem", daemon=True)
-        self._thread.start()
+        self._thread: threading.Thread | None = None
+        if start:
+            self.open()
 
     @property
     def path_a(self) -> str:
-        return self.a.path
+        return self.a.path if self.a is not None else ""
 
     @property
     def path_b(self) -> str:
-        return self.b.path
+        return self.b.path if self.b is not None else ""
+
+    port_a, port_b = path_a, path_b
+
+    @property
+    def bytes_copied(self) -> int:
+        return self.copied
+
+    def open(self) -> NullModem:
+        """Create the ptys and start copying (no-op when open)."""
+        if self._thread is not None:
+            return self
+        self.a, self.b = Pty(), Pty()
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="null-modem", daemon=True)
+        self._thread.start()
+        return self
+
+    def unplug(self) -> None:
+        self._plugged.clear()
+
+    def plug(self) -> None:
+        self._plugged.set()
 
     def _run(self) -> None:
         peer = {self.a.master: self.b.master, self.b.master: self.a.master}
-        try:
-            while not self._stop.is_set():
-                r, _, _ = select.select(list(peer), [], [], 0.05)
-                for fd in r:
-                    try:
-                        data = os.read(fd, self.chunk)
-                    except BlockingIOError:
-                        continue
-                    self.bytes_copied += write_all(peer[fd], data, self._stop)
-        except (OSError, ValueError):  # a pty was closed under us
-            pass
+        while not self._stop.is_set():
+            try:
+                ready, _, _ = select.select(list(peer), [], [], 0.05)
+            except (OSError, ValueError):  # a pty was closed under us
+                return
+            for fd in ready:
+                try:
+                    data = os.read(fd, self.chunk)
+                except BlockingIOError:
+                    continue
+                except OSError as err:  # EIO: no slave open at the moment
+                    if err.errno != errno.EIO:
+                        log.debug("pty read: %s", err)
+                    continue
+                if self._plugged.is_set():
+                    self._forward(peer[fd], data)
+                else:
+                    self.dropped += len(data)
+
+    def _forward(self, fd: int, data: bytes) -> None:
+        if not self.drop_when_full:
+            try:
+                self.copied += write_all(fd, data, self._stop)
+            except OSError:  # the far pty failed
+                self.dropped += len(data)
+            return
+        view = memoryview(data)
+        while view:
+            try:
+                n = os.write(fd, view)
+            except OSError:  # BlockingIOError: far side full
+                self.dropped += len(view)
+                return
+            self.copied += n
+            view = view[n:]
 
     def close(self) -> None:
-        self._stop.set()
-        self._thread.join(2.0)
-        self.a.close()
-        self.b.close()
+        """Stop the copy thread and close the ptys; safe twice."""
+        if self._thread is not None:
+            self._stop.set()
+            self._thread.join(2.0)
+            self._thread = None
+        for p in (self.a, self.b):
+            if p is not None:
+                p.close()
 
     def __enter__(self) -> NullModem:
-        return self
+        return self.open()
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+class PtyNullModem(NullModem):
+    """The null-modem cable of the serial (RTU) tests: opened by :meth:`open` (or ``with``),
+    ends ``port_a`` (e.g. the drive emulator) and ``port_b`` (the agent's client); bytes the far
+    side does not read are dropped and counted."""
+
+    def __init__(self) -> None:
+        super().__init__(4096, drop_when_full=True, start=False)
 
 
 class PluggablePort:

@@ -48,7 +48,7 @@ from dataclasses import dataclass, field
 
 import zenoh
 
-from protocols.base import QUALITY_CODES, STATE_CODES, DriveStatus
+from protocols.base import QUALITY_CODES, STATE_CODES, DriveStatus, OpenClose
 
 log = logging.getLogger(__name__)
 
@@ -162,7 +162,7 @@ class _Drive:
     queryables: list = field(default_factory=list)
 
 
-class ZenohSink:
+class ZenohSink(OpenClose):
     """Publishes :class:`DriveStatus` on zenoh (the :class:`protocols.base.Sink` contract)."""
 
     name = "zenoh"
@@ -226,13 +226,6 @@ class ZenohSink:
         except zenoh.ZError as err:  # already closed underneath us
             log.warning("zenoh close: %s", err)
         self._drives.clear()
-
-    def __enter__(self):
-        self.open()
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
     # --- the Sink contract ------------------------------------------------------------------
 

@@ -1,6 +1,5 @@
 """CAN FD source + emulator on python-can's in-process ``virtual`` interface."""
 
-import time
 import uuid
 
 import can
@@ -8,22 +7,13 @@ import cantools
 import numpy as np
 import pytest
 
+from _transport_helpers import FS, assert_contiguous, joined, make_record, read_samples
 from agent.records import Record
 from firmware_if import can_frame as cf
 from protocols.base import Source
 from protocols.can_bus import CanEmulator, CanSource
 
-FS = 25_000.0
 BASE = cf.drive_base_id(2)
-
-
-def make_record(n, encoder=False, seed=0):
-    rng = np.random.default_rng(seed)
-    t = np.arange(n) / FS
-    ph = 2 * np.pi * 50 * t - 2 * np.pi / 3 * np.arange(3)[:, None]
-    return Record(t=t, v_abc=300 * np.cos(ph) + rng.normal(0, 2, (3, n)), i_abc=8 * np.sin(ph),
-                  theta_e=np.mod(2 * np.pi * 50 * t, 2 * np.pi) if encoder else None,
-                  omega_e=np.full(n, 2 * np.pi * 50) if encoder else None)
 
 
 def q(x, lsb):
@@ -37,26 +27,6 @@ def channel():
 
 def bus_cfg(channel):
     return {"interface": "virtual", "channel": channel}
-
-
-def read_samples(src, n, timeout=5.0):
-    blocks, got, t0 = [], 0, time.monotonic()
-    while got < n and time.monotonic() - t0 < timeout:
-        b = src.read(0.2)
-        if b is not None:
-            blocks.append(b)
-            got += b.n
-    return blocks
-
-
-def joined(blocks, name):
-    return np.concatenate([getattr(b, name) for b in blocks], axis=-1)
-
-
-def assert_contiguous(blocks, start=0):
-    for b in blocks:
-        assert b.first_sample == start
-        start += b.n
 
 
 @pytest.mark.parametrize("encoder", [False, True])

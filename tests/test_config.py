@@ -87,7 +87,7 @@ BAD = [
     (BASE.replace('kind = "simulated"', 'kind = "carrier-pigeon"'), "drives[0].source.kind: must be one of"),
     (BASE.replace('kind = "simulated"', 'kind = "serial"\nport = 7'), "drives[0].source.port: must be a string"),
     (BASE.replace('kind = "simulated"', 'kind = "serial"'), "drives[0].source.port: missing"),
-    (BASE.replace('kind = "simulated"', 'kind = "can"\nchannel = "can0"\nbase_id = 0x18FF50E5'),
+    (BASE.replace('kind = "simulated"', 'kind = "can"\nchannel = "can0"\nbase_id = 0x18FF50E5\nextended = false'),
      "drives[0].source.base_id: 0x18ff50e5 needs extended = true"),
     (BASE.replace('kind = "simulated"', 'kind = "modbus"'), "drives[0].source.host: set exactly one of"),
     (BASE.replace('kind = "simulated"', 'kind = "modbus"\nhost = "h"\nport = 70000'),

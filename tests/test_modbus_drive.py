@@ -13,7 +13,7 @@ from agent.records import Record
 from firmware_if import modbus_capture as cap
 from protocols.base import Block, Source
 from protocols.modbus_drive import DriveModbusEmulator, ModbusSnapshotSource, SnapshotSourceConfig
-from protocols.pty_null_modem import PtyNullModem
+from protocols.ptyutil import PtyNullModem
 
 pytestmark = pytest.mark.timeout(60)
 FS = 25_000.0

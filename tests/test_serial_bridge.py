@@ -5,23 +5,13 @@ import time
 import numpy as np
 import pytest
 
-from agent.records import Record
+from _transport_helpers import FS, assert_contiguous, joined, make_record, read_samples
 from firmware_if import serial_frame as sf
 from protocols.base import Source
 from protocols.ptyutil import NullModem, PluggablePort, Pty
 from protocols.serial_bridge import SerialBridgeEmulator, SerialBridgeSource, record_chunks
 
-FS = 25_000.0
 SPF = 64  # samples per frame
-
-
-def make_record(n, encoder=False, seed=0):
-    rng = np.random.default_rng(seed)
-    t = np.arange(n) / FS
-    ph = 2 * np.pi * 50 * t - 2 * np.pi / 3 * np.arange(3)[:, None]
-    return Record(t=t, v_abc=300 * np.cos(ph) + rng.normal(0, 2, (3, n)), i_abc=8 * np.sin(ph),
-                  theta_e=np.mod(2 * np.pi * 50 * t, 2 * np.pi) if encoder else None,
-                  omega_e=np.full(n, 2 * np.pi * 50) if encoder else None)
 
 
 def quantised(rec, fmt=sf.FMT_INT16):
@@ -29,27 +19,6 @@ def quantised(rec, fmt=sf.FMT_INT16):
                                               else []))
     s = sf.DEFAULT_SCALES[fmt][:x.shape[0]]
     return sf.quantize(x, s, fmt) * sf.wire_scales(s, x.shape[0])[:, None]
-
-
-def read_samples(src, n, timeout=8.0):
-    blocks, got, t0 = [], 0, time.monotonic()
-    while got < n and time.monotonic() - t0 < timeout:
-        b = src.read(0.2)
-        if b is not None:
-            blocks.append(b)
-            got += b.n
-    return blocks
-
-
-def joined(blocks, name):
-    return np.concatenate([getattr(b, name) for b in blocks], axis=-1)
-
-
-def assert_contiguous(blocks, start=0):
-    first = start
-    for k, b in enumerate(blocks):
-        assert b.first_sample == first, (k, b.first_sample, first)
-        first += b.n
 
 
 @pytest.fixture

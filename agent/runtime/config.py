@@ -108,9 +108,9 @@ class CanCfg:
     kind: str = "can"
     interface: str = "socketcan"  #: python-can interface name (socketcan, virtual, pcan, ...)
     channel: str = _opt()  #: e.g. can0
-    base_id: int = _opt(0x200, ge=0, le=0x1FFFFFFF)  #: first arbitration id of the drive's frames
+    base_id: int = _opt(0x0A500000, ge=0, le=0x1FFFFFFF)  #: first id of the drive's block (firmware_if.can_frame)
     fd: bool = True
-    extended: bool = False
+    extended: bool = True  #: the sample frames use 29-bit ids
     bitrate: int | None = _opt(None, gt=0)  #: only for interfaces that set it (SocketCAN ignores it)
     data_bitrate: int | None = _opt(None, gt=0)
 

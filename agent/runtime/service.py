@@ -19,7 +19,7 @@ import signal
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from agent.library import ModelLibrary, Schedule
@@ -34,8 +34,9 @@ log = logging.getLogger("pmsm-agent.service")
 QUEUE_BLOCKS = 64  #: per drive, ~6 s of 0.1 s blocks
 
 
-def build_source(drive, rate_hz: float) -> Source:
-    """The transport of one ``[[drives]]`` entry."""
+def build_source(drive, rate_hz: float, span_s: float | None = None) -> Source:
+    """The transport of one ``[[drives]]`` entry; ``span_s``: the pipeline's span (window_s x
+    span_windows), the length of a Modbus snapshot (default: the default pipeline's)."""
     s, name, profile = drive.source, drive.name, drive.drive_profile
     if s.kind == "simulated":
         from protocols.playback import simulated_source
@@ -60,11 +61,12 @@ def build_source(drive, rate_hz: float) -> Source:
     if s.kind == "modbus":
         from protocols.modbus_drive import ModbusSnapshotSource, SnapshotSourceConfig
 
-        span = PipelineConfig().span_windows  # a snapshot must hold a whole span
-        return ModbusSnapshotSource(SnapshotSourceConfig(
+        if span_s is None:
+            span_s = PipelineConfig().window_s * PipelineConfig().span_windows
+        return ModbusSnapshotSource(SnapshotSourceConfig(  # a snapshot must hold a whole span
             drive=name, transport="rtu" if s.serial_port else "tcp", host=s.host or "127.0.0.1", port=s.port,
             serial_port=s.serial_port or "", baudrate=s.baud, device_id=s.unit_id,
-            samples=int(span * 2.0 * rate_hz), request_timeout_s=s.timeout_s, poll_interval_s=s.poll_interval_s))
+            samples=int(round(span_s * rate_hz)), request_timeout_s=s.timeout_s, poll_interval_s=s.poll_interval_s))
     if s.kind == "nidaq":
         from protocols.nidaq import NidaqSource
 
@@ -85,6 +87,7 @@ class DriveRuntime:
     monitor: DriveMonitor
     blocks: queue.Queue = field(default_factory=lambda: queue.Queue(maxsize=QUEUE_BLOCKS))
     dropped: int = 0
+    gaps: int = 0
     reader: threading.Thread | None = None
 
 
@@ -104,10 +107,15 @@ class Service:
                                     Schedule(p.schedule_fe_tol_hz, p.schedule_load_tol_pct, p.schedule_hysteresis))
         pcfg = pipeline_config(cfg)
         self.drives = {}
+        span_s = pcfg.window_s * pcfg.span_windows
         for d in cfg.drives:
-            monitor = DriveMonitor(d.name, d.drive_profile, self.library, pcfg,
+            # a snapshot source (Modbus) delivers one span every capture (span_s) + transfer: quiet
+            # that long between snapshots is normal, so "stale" waits for two missed snapshots
+            dcfg = replace(pcfg, stale_after_s=pcfg.stale_after_s + 2 * span_s) if d.source.kind == "modbus" else pcfg
+            monitor = DriveMonitor(d.name, d.drive_profile, self.library, dcfg,
                                    on_event=lambda kind, detail, name=d.name: self._event(name, kind, detail))
-            self.drives[d.name] = DriveRuntime(d.name, build_source(d, d.drive_profile.sampling.rate_hz), monitor)
+            source = build_source(d, d.drive_profile.sampling.rate_hz, span_s)
+            self.drives[d.name] = DriveRuntime(d.name, source, monitor)
         self.sinks: list[Sink] = [JournalSink(self.journal)]
         self.plc = None
         if cfg.modbus_server.enabled:
@@ -124,8 +132,10 @@ class Service:
 
     # -- events and queries ---------------------------------------------------------------------
     def _event(self, drive: str, kind: str, detail: dict) -> None:
-        if kind in ("learning", "learned", "gap"):
-            self.journal.record("learning" if kind != "gap" else "error", drive, detail={"event": kind, **detail})
+        if kind in ("learning", "learned"):
+            self.journal.record("learning", drive, detail={"event": kind, **detail})
+        elif kind == "gap":  # counted, not journalled: snapshot sources make one per snapshot
+            self.drives[drive].gaps += 1
         if kind in ("state", "quality", "learning", "learned"):
             self.on_transition(drive, kind, detail)
 
@@ -159,7 +169,7 @@ class Service:
 
     def _diagnostics(self, drive: str) -> dict:
         d = self.drives[drive]
-        return {"source": d.source.stats.as_dict(), "queue": d.blocks.qsize(), "dropped_blocks": d.dropped,
+        return {"source": d.source.stats.as_dict(), "queue": d.blocks.qsize(), "dropped_blocks": d.dropped, "stream_gaps": d.gaps,
                 "learning": d.monitor.learning, "library": sorted(self.library.baselines)}
 
     # -- threads --------------------------------------------------------------------------------
@@ -208,7 +218,14 @@ class Service:
                     self._publish(status)
                 continue
             busy = True
-            for status in d.monitor.process(block):
+            try:
+                statuses = d.monitor.process(block)
+            except Exception as err:  # a bug must not stop the other drives: journal it, restart the stream
+                log.exception("%s: pipeline failed on a block", d.name)
+                self.journal.record("error", d.name, detail={"event": "pipeline", "error": repr(err)})
+                d.monitor.reset_stream()
+                continue
+            for status in statuses:
                 self._publish(status)
                 if status.quality == "no_model" and self.cfg.pipeline.auto_learn and not d.monitor.learning:
                     d.monitor.start_learning(f"{d.name}_{status.fe_hz:.0f}hz_{status.load_pct:.0f}pct")

@@ -1,0 +1,137 @@
+"""agent.kernels (the C kernels through ctypes) against literal Python transcriptions written here.
+
+The references repeat the recursions of agent/_kernels.c operation by operation in Python floats
+(the same libm for cos/sin/atan2), so the comparison is exact. The agent's behaviour itself is
+tested through agent.pll and agent.model (tests/test_pll.py, tests/test_model.py).
+"""
+
+from __future__ import annotations
+
+import importlib.machinery
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from agent import kernels
+from agent.kernels import pll_run, simulate_ltv
+from agent.pll import PLL
+
+FS = 25_000.0
+
+
+def pll_reference(x_abc, clarke, par, zi):
+    ts, wn_trk, wn_acq, taper, a_ef, thr, thr_off, n_lock, amin, zeta = (float(v) for v in par)
+    th, om, ef, cnt, lck, wn = (float(v) for v in zi)
+    theta, omega = [], []
+    for xa, xb, xc in zip(*(map(float, row) for row in x_abc)):
+        al = clarke[0, 0] * xa + clarke[0, 1] * xb + clarke[0, 2] * xc
+        be = clarke[1, 0] * xa + clarke[1, 1] * xb + clarke[1, 2] * xc
+        c, s = math.cos(th), math.sin(th)
+        d, q = al * c + be * s, -al * s + be * c
+        e = 0.0
+        if math.isfinite(d) and math.isfinite(q) and math.hypot(d, q) > amin:
+            e = math.atan2(-d, q)
+            ef += a_ef * (e - ef)
+            if lck == 0.0:
+                cnt = cnt + 1.0 if abs(ef) < thr else 0.0
+                lck = 1.0 if cnt >= n_lock else 0.0
+            elif abs(ef) > thr_off:
+                lck, cnt, wn = 0.0, 0.0, wn_acq
+        if lck != 0.0 and wn > wn_trk:
+            wn = max(wn * taper, wn_trk)
+        om += wn * wn * ts * e
+        theta.append(th)
+        omega.append(om)
+        th += ts * (om + 2.0 * zeta * wn * e)
+        th -= 2.0 * math.pi * math.floor((th + math.pi) / (2.0 * math.pi))
+    return np.array(theta), np.array(omega), np.array([th, om, ef, cnt, lck, wn])
+
+
+def ltv_reference(a0, a1, omega, u, x0):
+    x = np.empty((2, omega.size))
+    x[:, 0] = x0
+    for k in range(omega.size - 1):
+        a = [[a0[i, j] + omega[k] * a1[i, j] for j in range(2)] for i in range(2)]
+        x[0, k + 1] = a[0][0] * x[0, k] + a[0][1] * x[1, k] + u[0, k]
+        x[1, k + 1] = a[1][0] * x[0, k] + a[1][1] * x[1, k] + u[1, k]
+    return x
+
+
+def three_phase(n, f_hz, amp, seed):
+    rng = np.random.default_rng(seed)
+    phi = rng.uniform(0.0, 2.0 * np.pi) + 2.0 * np.pi * f_hz * np.arange(n) / FS
+    x = amp * np.cos(phi + np.array([0.0, -2.0 * np.pi / 3.0, 2.0 * np.pi / 3.0])[:, None])
+    return x + 0.05 * amp * rng.standard_normal(x.shape)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_pll_equals_reference_through_lock_gaps_and_nan(seed):
+    x = three_phase(3000, 95.0 + 5.0 * seed, amp=10.0 ** (seed - 1), seed=seed)
+    x[:, 1200:1400] = 0.0  # no phase: the angle free-runs
+    x[seed % 3, 1700:1710] = np.nan
+    pll = PLL(FS, 100.0, lock_time_s=0.002, shift_time_s=0.005, min_amplitude=0.01 * seed)
+    pll._state[0] = seed - 1.5  # start away from the input's phase
+    got = pll_run(x, pll._clarke, pll._par, pll._state)
+    want = pll_reference(x, pll._clarke, pll._par, pll._state)
+    for g, w in zip(got, want):
+        np.testing.assert_array_equal(g, w)
+    assert got[2][4] == 1.0  # the run went through lock
+
+
+def test_pll_state_in_and_out():
+    x = three_phase(2000, 100.0, 1.0, seed=7)
+    pll = PLL(FS, 100.0)
+    zi = pll._state.copy()
+    theta, omega, zf = pll_run(x, pll._clarke, pll._par, zi)
+    np.testing.assert_array_equal(zi, pll._state)  # the input state is not modified
+    t1, o1, z1 = pll_run(x[:, :777], pll._clarke, pll._par, zi)
+    t2, o2, z2 = pll_run(x[:, 777:], pll._clarke, pll._par, z1)
+    np.testing.assert_array_equal(np.concatenate((t1, t2)), theta)
+    np.testing.assert_array_equal(np.concatenate((o1, o2)), omega)
+    np.testing.assert_array_equal(z2, zf)
+    t0, o0, z0 = pll_run(np.empty((3, 0)), pll._clarke, pll._par, zi)
+    assert t0.shape == o0.shape == (0,)
+    np.testing.assert_array_equal(z0, zi)
+
+
+def test_simulate_ltv_equals_reference_and_takes_views():
+    rng = np.random.default_rng(3)
+    n = 2000
+    a0, a1 = 0.5 * rng.standard_normal((2, 2)), 1e-4 * rng.standard_normal((2, 2))
+    omega, u = rng.uniform(0.0, 700.0, n), rng.standard_normal((2, n))
+    x0 = rng.standard_normal((2, 5))[:, 2]  # a strided view, as sig.i_dq[:, 0]
+    np.testing.assert_array_equal(simulate_ltv(a0, a1, omega, u, x0), ltv_reference(a0, a1, omega, u, x0))
+    np.testing.assert_array_equal(simulate_ltv(a0, a1, omega[:1], u[:, :1], x0), x0[:, None])
+    assert simulate_ltv(a0, a1, omega[:0], u[:, :0], x0).shape == (2, 0)
+
+
+@pytest.mark.parametrize("bad", ["x_abc", "u", "par"])
+def test_wrong_shapes_raise(bad):
+    pll = PLL(FS, 100.0)
+    with pytest.raises(ValueError, match=bad):
+        if bad == "x_abc":
+            pll_run(np.zeros((2, 10)), pll._clarke, pll._par, pll._state)
+        elif bad == "par":
+            pll_run(np.zeros((3, 10)), pll._clarke, pll._par[:9], pll._state)
+        else:
+            simulate_ltv(np.eye(2), np.zeros((2, 2)), np.zeros(10), np.zeros((2, 9)), np.zeros(2))
+
+
+def test_missing_library_says_how_to_build(monkeypatch):
+    monkeypatch.setattr(importlib.machinery, "EXTENSION_SUFFIXES", [".not-built.so"])
+    with pytest.raises(ImportError, match="make setup"):
+        kernels._load()
+
+
+def test_the_agent_pipeline_does_not_import_numba():
+    code = ("import sys, numpy as np, agent.pipeline; from agent.model import DQModel, Signals; "
+            "from agent.pll import track; w = np.full(100, 600.0); "
+            "track(np.cos(np.arange(100) / 40 + np.array([[0], [-2.1], [2.1]])), 25e3, 100.0); "
+            "sig = Signals(np.ones((2, 100)), np.ones((2, 100)), w, w, 4e-5); "
+            "DQModel('speed', 4e-5, np.ones(3), np.ones(4)).simulate(sig); "
+            "print(sorted(m for m in ('numba', 'llvmlite') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
