@@ -7,8 +7,9 @@ sinks (Modbus server for the PLC, zenoh, journal; ``publish`` never blocks), app
 commands and pings the systemd watchdog from the place that proves progress.
 
 Order (as in Telegraf): sinks open before sources, sources close before sinks; ``READY=1`` is
-sent only when everything is open. SIGTERM/SIGINT stop cleanly (journal flushed), SIGHUP
-reloads the model library.
+sent only when the sinks are open and every source has been opened (a source whose link is
+not there yet has been tried once and keeps being retried; STATUS names it). SIGTERM/SIGINT
+stop cleanly (journal flushed), SIGHUP reloads the model library.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from protocols.base import Block, DriveStatus, Sink, Source
 log = logging.getLogger("pmsm-agent.service")
 
 QUEUE_BLOCKS = 64  #: per drive, ~6 s of 0.1 s blocks
+OPEN_WAIT_S = 10.0  #: READY waits at most this long for each source's first open
 
 
 def build_source(drive, rate_hz: float, span_s: float | None = None) -> Source:
@@ -88,6 +90,7 @@ class DriveRuntime:
     blocks: queue.Queue = field(default_factory=lambda: queue.Queue(maxsize=QUEUE_BLOCKS))
     dropped: int = 0
     gaps: int = 0
+    first_open: threading.Event = field(default_factory=threading.Event)
     reader: threading.Thread | None = None
 
 
@@ -178,9 +181,11 @@ class Service:
         while not self.stop_event.is_set():
             try:
                 d.source.open()
+                d.first_open.set()
                 break
             except Exception as err:  # a transport that is not there yet: retry with backoff
                 d.source.stats.last_error = str(err)
+                d.first_open.set()  # tried once: READY may go out, the link keeps being retried
                 log.warning("%s: cannot open source (%s); retrying in %.1f s", d.name, err, backoff)
                 self.stop_event.wait(backoff)
                 backoff = min(2 * backoff, 30.0)
@@ -254,7 +259,10 @@ class Service:
                 d.reader = threading.Thread(target=self._reader, args=(d,), name=f"source-{d.name}", daemon=True)
                 d.reader.start()
             watchdog = sdnotify.Watchdog()
-            sdnotify.ready(f"monitoring {len(self.drives)} drive(s)")
+            for d in self.drives.values():  # READY once every source has been opened (or tried)
+                d.first_open.wait(timeout=OPEN_WAIT_S)
+            down = [d.name for d in self.drives.values() if d.source.stats.last_error]
+            sdnotify.ready(f"monitoring {len(self.drives)} drive(s)" + (f"; not connected: {', '.join(down)}" if down else ""))
             while not self.stop_event.is_set():
                 if t_end is not None and time.monotonic() > t_end:
                     break
