@@ -34,7 +34,8 @@ def residual_phase_a(model: DQModel, sig: Signals) -> np.ndarray:
     """Phase-a residual current r_a = i_a - i_a_model (A), free-run model (Alg. 3 lines 4-6):
     the first row of the inverse Park and Clarke transforms, r_a = r_d cos(theta) - r_q sin(theta)."""
     r_d, r_q = sig.i_dq - model.simulate(sig)
-    return r_d * np.cos(sig.theta_e) - r_q * np.sin(sig.theta_e)
+    c, s = sig.cos_sin if sig.cos_sin is not None else (np.cos(sig.theta_e), np.sin(sig.theta_e))
+    return r_d * c - r_q * s
 
 
 def residual_spectra(model: DQModel, sig: Signals, window_s: float = WINDOW_S,

@@ -56,22 +56,28 @@ def spectrum_peaks(baseline: Baseline, freqs: np.ndarray, amp: np.ndarray, fe_hz
 
     ``amp`` is one spectrum (bins,) or one per window (n_windows, bins); with several windows a
     line's level is the one it held in *every* window (persistence) and its magnitude the smallest.
+    A line's magnitude is the largest bin within ``search_bins`` of its frequency (``peak_near``).
     """
     th = baseline.thresholds
-    th2, th3 = th.th2, th.th3
     amp = np.atleast_2d(amp)
+    lines = [(family, line["k"], line["freq_hz"])
+             for family, items in fault_frequencies(baseline.profile, fe_hz, K_MAX).items()
+             for line in items if line["freq_hz"] <= freqs[-1]]
+    if not lines:
+        return []
+    targets = np.array([f for _, _, f in lines])
+    idx, _, mag = peak_near(freqs, amp, targets, th.search_bins)  # (windows, lines)
+    weakest = np.argmin(mag, axis=0)  # the window where each line is lowest
+    cols = np.arange(len(lines))
+    mag_min, bin_at = mag[weakest, cols], idx[weakest, cols]
+    centre = np.array([nearest_bin(freqs, f) for f in targets])
+    th2, th3 = th.th2[centre], th.th3[centre]
     peaks = []
-    for family, lines in fault_frequencies(baseline.profile, fe_hz, K_MAX).items():
-        for line in lines:
-            if line["freq_hz"] > freqs[-1]:
-                continue
-            _, f, mag = peak_near(freqs, amp, line["freq_hz"], th.search_bins)
-            c = nearest_bin(freqs, line["freq_hz"])
-            weakest = int(np.argmin(mag))
-            level = "warning" if mag[weakest] > th3[c] else "caution" if mag[weakest] > th2[c] else "normal"
-            peaks.append({"freq_hz": round(float(f[weakest]), 4), "family": family, "k": line["k"],
-                          "level": level, "magnitude": float(mag[weakest]), "th2": float(th2[c]),
-                          "th3": float(th3[c]), "target_hz": round(line["freq_hz"], 4)})
+    for j, (family, k, f) in enumerate(lines):
+        level = "warning" if mag_min[j] > th3[j] else "caution" if mag_min[j] > th2[j] else "normal"
+        peaks.append({"freq_hz": round(float(freqs[bin_at[j]]), 4), "family": family, "k": k, "level": level,
+                      "magnitude": float(mag_min[j]), "th2": float(th2[j]), "th3": float(th3[j]),
+                      "target_hz": round(f, 4)})
     return peaks
 
 

@@ -49,6 +49,7 @@ class Signals:
     v_abc: np.ndarray | None = None  #: (3, N) V
     pole_pairs: int | None = None  #: for effects tied to the shaft angle theta_e / p
     p_in: np.ndarray | None = None  #: (N,) W, instantaneous input power v_a i_a + v_b i_b + v_c i_c
+    cos_sin: np.ndarray | None = None  #: (2, N) cos(theta_e), sin(theta_e) when already computed
 
     @property
     def n(self) -> int:
@@ -76,7 +77,7 @@ class Signals:
         opt = lambda a: None if a is None else a[:, cut]  # noqa: E731
         return Signals(self.i_dq[:, cut], self.v_dq[:, cut], self.theta_e[cut], self.omega_e[cut], self.ts,
                        opt(self.i_abc), opt(self.v_abc), self.pole_pairs,
-                       None if self.p_in is None else self.p_in[cut])
+                       None if self.p_in is None else self.p_in[cut], opt(self.cos_sin))
 
 
 @dataclass(frozen=True)

@@ -36,7 +36,7 @@ import numpy as np
 
 from agent.baseline import BaselineBuilder, residual_spectra
 from agent.decision import STATES, decide
-from agent.frames import abc_to_dq
+from agent.frames import CLARKE, abc_to_dq
 from agent.identify import cluster_point, fit_torque, operating_point
 from agent.library import ModelLibrary
 from agent.model import BASE_TERMS, Signals, input_power, regressors
@@ -49,7 +49,8 @@ log = logging.getLogger(__name__)
 
 _THETA_LIMIT = 2.0**20  #: rad; the buffered angle is kept below this
 #: rows of the window buffer: phase voltages and currents, angle (wrapped), speed, dq signals, power
-_ROWS = ("va", "vb", "vc", "ia", "ib", "ic", "theta_e", "omega_e", "i_d", "i_q", "v_d", "v_q", "p_in")
+_ROWS = ("va", "vb", "vc", "ia", "ib", "ic", "theta_e", "omega_e", "i_d", "i_q", "v_d", "v_q", "p_in",
+         "cos_theta", "sin_theta")
 
 
 @dataclass(frozen=True)
@@ -81,8 +82,9 @@ class DriveMonitor:
         self.n_hop = int(round(config.hop_s * self.rate))
         self.n_span = self.n_win * config.span_windows
         self.on_event = on_event or (lambda kind, detail: None)
-        # circular buffer, one row per signal (_ROWS); each sample is transformed once, on arrival
-        self._buf = np.zeros((len(_ROWS), self.n_span))
+        # circular buffer, one row per signal (_ROWS); each sample is transformed once, on arrival,
+        # and stored twice (at i and i + n_span) so that any recent stretch is a contiguous view
+        self._buf = np.zeros((len(_ROWS), 2 * self.n_span))
         self.pll = PLL(self.rate, profile.rated_fe_hz)
         self.status = DriveStatus(drive)
         self._below_since: float | None = None
@@ -132,14 +134,15 @@ class DriveMonitor:
             theta = theta - turns
             self._buf[6] -= turns
         self._theta_last = theta[-1]
-        if not (np.isfinite(block.v_abc).all() and np.isfinite(block.i_abc).all()) \
-                or np.abs(np.nan_to_num(block.i_abc)).max() >= self.config.max_current_a \
-                or np.abs(np.nan_to_num(block.v_abc)).max() >= self.config.max_voltage_v:
+        i_max, v_max = np.abs(block.i_abc).max(), np.abs(block.v_abc).max()  # NaN propagates
+        if not (i_max < self.config.max_current_a and v_max < self.config.max_voltage_v):
             self._bad_until = self._samples + block.n + self.n_span  # spans containing this block are bad
-        i_dq, _ = abc_to_dq(block.i_abc, theta)
+        cos_sin = np.vstack((np.cos(theta), np.sin(theta)))
+        a, b = CLARKE[:2] @ block.i_abc
+        i_dq = np.vstack((a * cos_sin[0] + b * cos_sin[1], b * cos_sin[0] - a * cos_sin[1]))  # eq. 2, as frames
         v_dq, _ = abc_to_dq(block.v_abc, theta + 0.5 * omega / self.rate)  # ZOH voltage, see Signals
         data = np.vstack((block.v_abc, block.i_abc, theta[None, :], omega[None, :], i_dq, v_dq,
-                          input_power(block.v_abc, block.i_abc)[None, :]))
+                          input_power(block.v_abc, block.i_abc)[None, :], cos_sin))
         out, pos = [], 0
         while pos < block.n:
             take = min(block.n - pos, self.n_hop - self._since_hop)
@@ -156,12 +159,13 @@ class DriveMonitor:
     def _push(self, chunk: np.ndarray) -> None:
         n = chunk.shape[1]  # <= n_hop <= n_span
         end = self._write + n
-        if end <= self.n_span:
-            self._buf[:, self._write:end] = chunk
-        else:
-            split = self.n_span - self._write
-            self._buf[:, self._write:] = chunk[:, :split]
-            self._buf[:, :n - split] = chunk[:, split:]
+        for base in (0, self.n_span):
+            if end <= self.n_span:
+                self._buf[:, base + self._write:base + end] = chunk
+            else:
+                split = self.n_span - self._write
+                self._buf[:, base + self._write:base + self.n_span] = chunk[:, :split]
+                self._buf[:, base:base + n - split] = chunk[:, split:]
         self._write = end % self.n_span
         self._filled = min(self.n_span, self._filled + n)
         self._samples += n
@@ -179,11 +183,10 @@ class DriveMonitor:
         """The last ``n`` samples, oldest first; None if they hold NaN or saturated samples."""
         if self._samples < self._bad_until - self.n_span + n:
             return None
-        start = (self._write - n) % self.n_span
-        b = self._buf[:, start:start + n] if start + n <= self.n_span else \
-            np.concatenate((self._buf[:, start:], self._buf[:, :start + n - self.n_span]), axis=1)
+        end = self._write + self.n_span
+        b = self._buf[:, end - n:end]
         return Signals(b[8:10], b[10:12], b[6], b[7], 1.0 / self.rate, b[3:6], b[0:3],
-                       self.profile.motor.pole_pairs, b[12])
+                       self.profile.motor.pole_pairs, b[12], b[13:15])
 
     def _window_spectrum(self, name: str, end: int) -> np.ndarray | None:
         """Residual spectrum of the window ending at stream sample ``end`` (cached)."""

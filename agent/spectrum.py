@@ -43,22 +43,28 @@ def amplitude_spectrum(x, rate_hz: float, window: str = "hann") -> tuple[np.ndar
     return np.fft.rfftfreq(n, 1.0 / rate_hz), amp
 
 
-def peak_near(freqs, amplitude, f_hz: float, half_width: int = 1):
+def peak_near(freqs, amplitude, f_hz, half_width: int = 1):
     """Largest bin among the bin nearest ``f_hz`` (Hz) and ``half_width`` bins either side.
 
     Tolerant of bin spacing: a line between bins, or a target off by up to half a bin plus
     ``half_width`` bins, is still found. ``freqs`` is the uniform grid of :func:`amplitude_spectrum`.
-    Returns ``(index, freq_hz, magnitude)``: scalars for ``amplitude`` shaped ``(nbins,)``, arrays
-    ``(m,)`` for ``(m, nbins)``. Raises ``ValueError`` when ``f_hz`` is off the grid by more than
-    ``half_width`` bins. The same statistic per bin is :func:`envelope`.
+    ``f_hz`` is one frequency or an array of them (shape ``L``); ``amplitude`` is ``(nbins,)`` or
+    ``(m, nbins)``. Returns ``(index, freq_hz, magnitude)`` shaped ``amplitude.shape[:-1] + L``
+    (plain scalars for one spectrum and one frequency). Raises ``ValueError`` when a frequency is
+    off the grid by more than ``half_width`` bins. The same statistic per bin is :func:`envelope`.
     """
     freqs = np.asarray(freqs, dtype=float)
     amplitude = np.asarray(amplitude)
-    centre = nearest_bin(freqs, f_hz, half_width)
-    lo, hi = max(centre - half_width, 0), min(centre + half_width + 1, freqs.size)
-    idx = lo + np.argmax(amplitude[..., lo:hi], axis=-1)
-    mag = np.take_along_axis(amplitude, np.asarray(idx)[..., None], axis=-1)[..., 0]
-    if amplitude.ndim == 1:
+    targets = np.atleast_1d(f_hz)
+    centre = np.array([nearest_bin(freqs, f, half_width) for f in targets.ravel()])
+    around = np.clip(centre[:, None] + np.arange(-half_width, half_width + 1), 0, freqs.size - 1)
+    near = amplitude[..., around]  # (..., lines, search)
+    best = np.argmax(near, axis=-1)
+    mag = np.take_along_axis(near, best[..., None], axis=-1)[..., 0]
+    idx = np.take_along_axis(np.broadcast_to(around, near.shape), best[..., None], axis=-1)[..., 0]
+    shape = amplitude.shape[:-1] + np.shape(f_hz)
+    idx, mag = idx.reshape(shape), mag.reshape(shape)
+    if not shape:
         return int(idx), float(freqs[idx]), float(mag)
     return idx, freqs[idx], mag
 

@@ -2,7 +2,7 @@
 
     python -m bench.bench_pipeline [--hours H]
 
-* throughput: serial-bridge frames (int16, 256 samples per frame) -> decoder -> blocks -> pipeline,
+* throughput: serial-bridge frames (int16, 512 samples per frame) -> decoder -> blocks -> pipeline,
   in multiples of real time on one core (target >= 50 x);
 * memory: resident set size over ``hours`` of accelerated streaming (target < 150 MB and
   < 1 MB growth after the first minute of signal);
@@ -34,7 +34,7 @@ from bench.acceptance import PROFILES  # noqa: E402
 from firmware_if import serial_frame  # noqa: E402
 from protocols.base import Block  # noqa: E402
 
-SAMPLES_PER_FRAME = 256  # ~10 ms of signal per frame, 3 kB: the bridge's recommended setting
+SAMPLES_PER_FRAME = 512  # ~20 ms of signal per frame, 6 kB: the bridge's recommended setting
 
 
 def _rss_mb() -> float:

@@ -12,7 +12,8 @@ import sys
 import time
 from pathlib import Path
 
-BENCHES = ("bench_rls", "bench_identify", "bench_pipeline", "bench_explain")
+BENCHES = ("bench_rls", "bench_identify", "bench_pipeline", "bench_explain", "bench_transports", "bench_modbus",
+           "bench_zenoh")
 
 
 def main(argv: list[str]) -> int:

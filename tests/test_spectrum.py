@@ -105,3 +105,16 @@ def test_peak_near_outside_spectrum():
     assert peak_near(f, a, 50.5)[0] == 50  # just past Nyquist, within the search
     with pytest.raises(ValueError, match="outside the spectrum"):
         peak_near(f, a, 60.0)
+
+
+def test_peak_near_many_frequencies_equals_one_at_a_time():
+    rng = np.random.default_rng(5)
+    a = rng.random((3, 400))
+    f = np.arange(400.0)
+    targets = np.array([0.2, 10.4, 57.5, 123.0, 399.0])
+    idx, fr, mag = peak_near(f, a, targets, 2)
+    assert idx.shape == (3, 5)
+    for j, t in enumerate(targets):
+        i1, f1, m1 = peak_near(f, a, t, 2)
+        np.testing.assert_array_equal(idx[:, j], i1)
+        np.testing.assert_array_equal(mag[:, j], m1)
