@@ -113,11 +113,12 @@ def fit_record(sig: Signals, profile: DriveProfile, form: str = "lumped",
 
 
 def fit_torque(sig: Signals, profile: DriveProfile) -> np.ndarray:
-    """[K_GT (N m/rad), B_GT (N m s/rad)] of the torque regression (eq. 15) by RLS."""
-    x_t, y_t = torque_regression(sig, profile.motor.pole_pairs, profile.torque_per_watt)
-    rls = StreamingRLS(2, lam=1.0, p0=1e6)
-    rls.update(x_t, y_t)
-    return rls.theta
+    """[K_GT (N m/rad), B_GT (N m s/rad)] of the torque regression (eq. 15): RLS without forgetting
+    over the record in information form (R = P0^-1 + X^T X, r = X^T y), from the two columns' dot
+    products directly since there are only two."""
+    (theta_m, omega_m), t_shaft = torque_regression(sig, profile.motor.pole_pairs, profile.torque_per_watt)
+    info = np.array([[theta_m @ theta_m, theta_m @ omega_m], [theta_m @ omega_m, omega_m @ omega_m]]) + 1e-6 * np.eye(2)
+    return np.linalg.solve(info, np.array([theta_m @ t_shaft, omega_m @ t_shaft]))
 
 
 def cluster_point(sig: Signals, profile: DriveProfile, form: str = "lumped", extra_q: tuple[Term, ...] = (),

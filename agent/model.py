@@ -259,7 +259,7 @@ def input_power(v_abc: np.ndarray, i_abc: np.ndarray) -> np.ndarray:
 
 
 def torque_regression(sig: Signals, pole_pairs: int, torque_per_watt: float) -> tuple[np.ndarray, np.ndarray]:
-    """Eq. 15: X = [theta_m, omega_m] (N, 2), y = T_shaft (N,) with T_shaft = (T_rated/P_rated) P_in
+    """Eq. 15: regressor columns [theta_m, omega_m] (2, N), y = T_shaft (N,) with T_shaft = (T_rated/P_rated) P_in
     (eq. 10) and theta_m = theta_e/p, omega_m = omega_e/p (eq. 12).
 
     theta_m is the unwrapped angle measured from the middle of the record: at steady speed it is
@@ -268,7 +268,7 @@ def torque_regression(sig: Signals, pole_pairs: int, torque_per_watt: float) -> 
     """
     t_shaft = torque_per_watt * sig.power
     theta_m = (sig.theta_e - np.mean(sig.theta_e)) / pole_pairs
-    return np.column_stack((theta_m, sig.omega_e / pole_pairs)), t_shaft
+    return np.vstack((theta_m, sig.omega_e / pole_pairs)), t_shaft
 
 
 def nrmse(i_meas: np.ndarray, i_model: np.ndarray) -> dict[str, float]:

@@ -144,7 +144,7 @@ def test_torque_regression_recovers_b_gt():
     i_abc = dq_to_abc(np.vstack((np.zeros(n), amp_i)), theta)
     sig = Signals.from_abc(v_abc, i_abc, theta, omega_e, TS)
     x, y = torque_regression(sig, PROFILE.motor.pole_pairs, PROFILE.torque_per_watt)
-    k_gt, b = np.linalg.lstsq(x, y, rcond=None)[0]
+    k_gt, b = np.linalg.lstsq(x.T, y, rcond=None)[0]
     assert b == pytest.approx(b_gt, rel=1e-9)
     assert abs(k_gt) < 1e-9
 
@@ -163,3 +163,15 @@ def test_output_error_refinement_removes_noise_bias(form):
     for key, want in (("Rs_q", RS), ("Ld", LD), ("Lq", LQ), ("psi_m", PSI)):
         assert p[key] == pytest.approx(want, rel=0.03), key
     assert refined.is_plausible()[0]
+
+
+def test_fit_torque_equals_rls_of_algorithm_1():
+    """The two-column shortcut equals StreamingRLS (lam = 1, P0 = 1e6 I) on eq. 15's regression."""
+    from agent.identify import fit_torque
+    from agent.rls import StreamingRLS
+
+    sig = euler_plant(seed=8)
+    x, y = torque_regression(sig, PROFILE.motor.pole_pairs, PROFILE.torque_per_watt)
+    rls = StreamingRLS(2, lam=1.0, p0=1e6)
+    rls.update(x.T, y)
+    np.testing.assert_allclose(fit_torque(sig, PROFILE), rls.theta, rtol=1e-9)
