@@ -7,11 +7,10 @@ key path, and the values land in frozen dataclasses.
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import MISSING, dataclass, fields
 from pathlib import Path
 
-from agent.errors import InputError
+from agent.errors import InputError, read_toml
 
 
 @dataclass(frozen=True)
@@ -131,13 +130,5 @@ def parse_profile(data: dict, source: str = "<profile>") -> DriveProfile:
 
 def load_profile(path: str | Path) -> DriveProfile:
     """Read and validate a drive profile TOML file."""
-    path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError("no such profile file", source=str(path)) from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise InputError(f"cannot read profile: {err}", source=str(path)) from None
-    except tomllib.TOMLDecodeError as err:
-        raise InputError(f"not valid TOML: {err}", source=str(path)) from None
+    data = read_toml(path, "profile")
     return parse_profile(data, source=str(path))

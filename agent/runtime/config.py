@@ -13,13 +13,12 @@ import math
 import os
 import re
 import socket
-import tomllib
 import typing
 from dataclasses import MISSING, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
-from agent.errors import InputError
+from agent.errors import InputError, read_toml
 
 SCHEMA_VERSION = 1
 DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "config" / "agent.toml"
@@ -429,14 +428,7 @@ def parse_config(data: dict, source: str | os.PathLike = "<config>") -> Config:
 def check_config(path: str | os.PathLike) -> Config:
     """Read and validate the agent config file; ``InputError`` names the file and the key path."""
     path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError("no such config file", source=str(path)) from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise InputError(f"cannot read config: {err}", source=str(path)) from None
-    except tomllib.TOMLDecodeError as err:
-        raise InputError(f"not valid TOML: {err}", source=str(path)) from None
+    data = read_toml(path, "config")
     return parse_config(data, path)
 
 
