@@ -70,6 +70,7 @@ def run_demo(seconds: float = WALL_LIMIT_S, say=print) -> list[dict]:
             f"{cfg.modbus_server.host}:{cfg.modbus_server.port}, zenoh {', '.join(cfg.zenoh.listen)} prefix "
             f"{cfg.zenoh.prefix}; script: " + ", ".join(f"{c} {s:g} s" for c, s in SCRIPT))
         service = Service(cfg, on_transition)
-        service.run(max_seconds=min(seconds, WALL_LIMIT_S))
+        # the whole demo, start-up and shut-down included, stays within the limit
+        service.run(max_seconds=max(1.0, min(seconds, WALL_LIMIT_S) - (time.monotonic() - t0) - 3.0))
     say(f"demo: done after {time.monotonic() - t0:.1f} s, {len(transitions)} transitions")
     return transitions

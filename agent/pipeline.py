@@ -17,8 +17,9 @@ Around the span decision:
   (:meth:`DriveMonitor.tick`), else ``good``. The last values are kept in every case.
 
 Latency: a fault that starts at t0 fills a whole span by t0 + span + hop at the latest and is
-raised ``persist_hops - 1`` hops later: with the defaults (span 4 s, hop 0.5 s, 2 hops) within
-one span plus 1 s.
+raised ``persist_hops - 1`` hops later: with the defaults (span 4 s, hop 1 s, 1 hop) within one
+span plus 1 s. (Consecutive spans overlap by 3/4, so requiring two of them changed nothing
+measurable: 2 alarm events per 10 min of healthy simulated signal either way, docs/benchmarks.md.)
 
 Learning (commissioning) runs the baseline's two passes on the stream
 (:class:`agent.baseline.BaselineBuilder`): ``learn_windows`` non-overlapping spans for the
@@ -57,8 +58,8 @@ _ROWS = ("va", "vb", "vc", "ia", "ib", "ic", "theta_e", "omega_e", "i_d", "i_q",
 class PipelineConfig:
     window_s: float = 2.0  #: residual-spectrum window, s (a baseline's thresholds are learned on it)
     span_windows: int = 2  #: windows per assessment (a record of this length offline)
-    hop_s: float = 0.5  #: an assessment every hop, s (divides window_s)
-    persist_hops: int = 2  #: consecutive decisions needed to raise a level
+    hop_s: float = 1.0  #: an assessment every hop, s (divides window_s)
+    persist_hops: int = 1  #: consecutive decisions needed to raise a level
     alarm_hold_s: float = 10.0  #: a raised level drops only after this long below it, s
     stale_after_s: float = 3.0  #: no input for this long -> quality "stale", s
     learn_windows: int = 30  #: spans (parameters) and windows (thresholds) to learn a baseline

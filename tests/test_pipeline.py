@@ -27,6 +27,8 @@ from runtime_support import RATE, blocks_of, cut, healthy_baseline, profile, sim
 pytestmark = pytest.mark.timeout(120)
 
 N_SPAN = int(4.0 * RATE)  # 2 windows of 2 s
+#: the tests run the pipeline with a 0.5 s hop and two-span persistence (finer than the defaults)
+CFG = PipelineConfig(hop_s=0.5, persist_hops=2)
 N_HOP = int(0.5 * RATE)
 BLOCK = 2500  # 0.1 s: hop ends fall on block ends, so a status belongs to the block that made it
 
@@ -59,7 +61,7 @@ def with_nan(rec, start: int, stop: int):
 # --- decisions -----------------------------------------------------------------------------------
 
 def test_healthy_stream_is_good_and_normal(library):
-    out = feed(DriveMonitor("d1", profile(), library), [sim("healthy", 80.0, 20.0, 100)])
+    out = feed(DriveMonitor("d1", profile(), library, CFG), [sim("healthy", 80.0, 20.0, 100)])
     # the first status when the first span is full, then one every hop
     assert [e for e, _ in out] == list(range(N_SPAN, int(20 * RATE) + 1, N_HOP))
     assert all(st.quality == "good" and st.model == "b80" for _, st in out), [st.quality for _, st in out]
@@ -72,14 +74,15 @@ def test_healthy_stream_is_good_and_normal(library):
         assert st.drive == "d1"
 
 
-def test_fault_is_raised_within_one_span_plus_one_second(library):
+@pytest.mark.parametrize("cfg", [CFG, PipelineConfig()], ids=["hop0.5-persist2", "defaults"])
+def test_fault_is_raised_within_one_span_plus_one_second(library, cfg):
     """Healthy for 6 s, then the driven gear's tooth wear (same seed: the fault appears without a
     jump in the stream); the healthy record alone is the control."""
     healthy, fault = sim("healthy", 80.0, 16.0, 101), sim("gear_severe_wear", 80.0, 16.0, 101)
     onset = int(6.0 * RATE)
-    control = feed(DriveMonitor("d1", profile(), library), [healthy])
+    control = feed(DriveMonitor("d1", profile(), library, cfg), [healthy])
     assert control and not any(st.state == "warning" for _, st in control), [st.state for _, st in control]
-    out = feed(DriveMonitor("d1", profile(), library), [splice(healthy, fault, onset)])
+    out = feed(DriveMonitor("d1", profile(), library, cfg), [splice(healthy, fault, onset)])
     assert [st.state for e, st in out if e <= onset] == [st.state for e, st in control if e <= onset]
     before = [st.state for e, st in out if e <= onset]
     assert before and set(before) == {"normal"}, before
@@ -92,7 +95,7 @@ def test_fault_is_raised_within_one_span_plus_one_second(library):
 
 
 def test_other_operating_point_is_no_model_without_alarm(library):
-    out = feed(DriveMonitor("d1", profile(), library), [sim("healthy", 40.0, 8.0, 104)])
+    out = feed(DriveMonitor("d1", profile(), library, CFG), [sim("healthy", 40.0, 8.0, 104)])
     assert len(out) == 9
     for _, st in out:
         assert (st.quality, st.state, st.spectrum_state, st.cluster_state, st.model) == \
@@ -104,7 +107,7 @@ def test_other_operating_point_is_no_model_without_alarm(library):
 def test_nan_burst_is_bad_input_for_the_spans_that_contain_it(library):
     b0, b1 = int(8.0 * RATE), int(8.1 * RATE)
     rec = with_nan(sim("healthy", 80.0, 16.0, 105), b0, b1)
-    out = feed(DriveMonitor("d1", profile(), library), [rec])
+    out = feed(DriveMonitor("d1", profile(), library, CFG), [rec])
     for end, st in out:
         contains = end - N_SPAN < b1 and end > b0  # the span [end - N_SPAN, end) holds a NaN
         assert st.quality == ("bad_input" if contains else "good"), (end / RATE, st.quality)
@@ -118,7 +121,7 @@ def test_nan_burst_is_bad_input_for_the_spans_that_contain_it(library):
 
 
 def test_saturated_samples_are_bad_input(library):
-    cfg = PipelineConfig(max_current_a=50.0)
+    cfg = dataclasses.replace(CFG, max_current_a=50.0)
     rec = sim("healthy", 80.0, 6.0, 106)
     i = rec.i_abc.copy()
     i[0, int(5.0 * RATE)] = 60.0
@@ -127,7 +130,7 @@ def test_saturated_samples_are_bad_input(library):
 
 
 def test_no_input_goes_stale_and_keeps_the_last_values(library):
-    mon = DriveMonitor("d1", profile(), library)
+    mon = DriveMonitor("d1", profile(), library, CFG)
     rec = sim("healthy", 80.0, 8.0, 107)
     out = feed(mon, [cut(rec, 0, int(5 * RATE))])
     last = out[-1][1]
@@ -145,7 +148,7 @@ def test_no_input_goes_stale_and_keeps_the_last_values(library):
 
 def test_gap_restarts_the_windows(library):
     events = []
-    mon = DriveMonitor("d1", profile(), library, on_event=lambda kind, detail: events.append((kind, detail)))
+    mon = DriveMonitor("d1", profile(), library, CFG, on_event=lambda kind, detail: events.append((kind, detail)))
     a, b = sim("healthy", 80.0, 6.0, 108), sim("healthy", 80.0, 6.0, 109)
     before = feed(mon, [a])
     assert before and before[-1][0] == a.n
@@ -164,7 +167,7 @@ def test_block_size_does_not_change_the_statuses(library):
         peaks = tuple((p["family"], p["k"], p["level"], round(p["freq_hz"], 6)) for p in st.peaks)
         return (st.quality, st.state, st.spectrum_state, st.cluster_state, st.model, peaks)
 
-    runs = {size: feed(DriveMonitor("d1", profile(), library), stream, size) for size in (N_HOP, BLOCK, 997, 40_003)}
+    runs = {size: feed(DriveMonitor("d1", profile(), library, CFG), stream, size) for size in (N_HOP, BLOCK, 997, 40_003)}
     ref = runs[BLOCK]
     assert len(ref) == (int(10 * RATE) - N_SPAN) // N_HOP + 1
     assert {st.state for _, st in ref} >= {"normal", "warning"}  # the comparison covers a change
@@ -179,7 +182,7 @@ def test_persistence_and_hold_work_across_stream_gaps(library):
     """A snapshot source (Modbus) delivers one span per stream, a segmented one restarts every few
     seconds: consecutive assessments still persist a level, and ``alarm_hold_s`` of lower
     assessments still lowers it (stream time counts across gaps)."""
-    mon = DriveMonitor("d1", profile(), library, PipelineConfig(alarm_hold_s=6.0))
+    mon = DriveMonitor("d1", profile(), library, dataclasses.replace(CFG, alarm_hold_s=6.0))
     fault, healthy = sim("gear_severe_wear", 80.0, 16.0, 101), sim("healthy", 80.0, 20.0, 100)
     first, states = 0, []
     for rec, a in [(fault, 0), (fault, N_SPAN)] + [(healthy, k * N_SPAN) for k in range(5)]:
@@ -228,7 +231,7 @@ def test_memory_does_not_grow_with_the_stream(library):
     (traced only there: tracing all 100 spans would double the run time). One assessment per
     window (hop_s = window_s) halves the run time and still exercises every per-window and
     per-hop cache."""
-    mon = DriveMonitor("d1", profile(), library, PipelineConfig(hop_s=2.0))
+    mon = DriveMonitor("d1", profile(), library, dataclasses.replace(CFG, hop_s=2.0))
     rec = sim("healthy", 80.0, 8.0, 110)
     first = 0
 
@@ -266,7 +269,7 @@ def test_memory_does_not_grow_with_the_stream(library):
 def test_learning_writes_a_baseline_atomically_then_monitors(tmp_path, monkeypatch):
     lib = ModelLibrary(tmp_path / "library")
     events = []
-    mon = DriveMonitor("d1", profile(), lib, PipelineConfig(learn_windows=4),
+    mon = DriveMonitor("d1", profile(), lib, dataclasses.replace(CFG, learn_windows=4),
                        on_event=lambda kind, detail: events.append((kind, detail)))
     renames = []
     real_replace = os.replace
@@ -308,7 +311,7 @@ def test_corrupt_files_do_not_break_reload_nor_replace_a_good_baseline(library):
     assert set(library.baselines) == {"b80"}
     assert set(library.errors) == {"b80", "junk", "empty"}
     # and the monitor keeps working with it
-    out = feed(DriveMonitor("d1", profile(), library), [sim("healthy", 80.0, 5.0, 112)])
+    out = feed(DriveMonitor("d1", profile(), library, CFG), [sim("healthy", 80.0, 5.0, 112)])
     assert out and all(st.quality == "good" and st.model == "b80" for _, st in out)
     # a fresh library (agent restart) skips the corrupt files instead of failing
     fresh = ModelLibrary(library.directory)
@@ -349,7 +352,7 @@ def test_monitor_uses_the_scheduled_baseline(tmp_path):
 def test_empty_and_odd_blocks_are_harmless(library):
     from protocols.base import Block
 
-    mon = DriveMonitor("d1", profile(), library)
+    mon = DriveMonitor("d1", profile(), library, CFG)
     rec = sim("healthy", 80.0, 5.0, 114)
     out = feed(mon, [cut(rec, 0, 60_000)], size=991)  # odd blocks, a span not yet full
     assert out == []

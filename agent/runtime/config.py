@@ -160,8 +160,8 @@ class DriveCfg:
 @dataclass(frozen=True, kw_only=True)
 class PipelineCfg:
     window_s: float = _opt(2.0, gt=0)  #: analysis window, s
-    hop_s: float = _opt(0.5, gt=0)  #: assessment period, s (divides window_s)
-    persist_hops: int = _opt(2, ge=1)  #: consecutive assessments needed to raise an alarm level
+    hop_s: float = _opt(1.0, gt=0)  #: assessment period, s (divides window_s)
+    persist_hops: int = _opt(1, ge=1)  #: consecutive assessments needed to raise an alarm level
     alarm_hold_s: float = _opt(10.0, ge=0)  #: a raised state is held this long before it may fall
     stale_after_s: float = _opt(3.0, gt=0)  #: no input for this long -> quality "stale"
     learn_windows: int = _opt(30, ge=4)  #: spans (parameters) and windows (thresholds) of a new baseline
