@@ -18,6 +18,7 @@
 from __future__ import annotations
 
 import logging
+import queue
 import threading
 import time
 from collections import deque
@@ -27,6 +28,22 @@ from typing import Any, Self
 import numpy as np
 
 from protocols.base import Block, OpenClose, SourceStats
+
+
+def put_drop_oldest(q: queue.Queue, item) -> int:
+    """Put ``item`` without blocking; when ``q`` is full drop the oldest entries to make room.
+    Returns how many were dropped (producers count them; a slow consumer never blocks a producer)."""
+    dropped = 0
+    while True:
+        try:
+            q.put_nowait(item)
+            return dropped
+        except queue.Full:
+            try:
+                q.get_nowait()
+                dropped += 1
+            except queue.Empty:
+                pass
 
 
 class Backoff:

@@ -49,6 +49,7 @@ from dataclasses import dataclass, field
 import zenoh
 
 from protocols.base import QUALITY_CODES, STATE_CODES, DriveStatus, OpenClose
+from protocols.streaming import put_drop_oldest
 
 log = logging.getLogger(__name__)
 
@@ -245,16 +246,7 @@ class ZenohSink(OpenClose):
             self._enqueue((status.drive, doc))  # a snapshot: a later change does not overwrite it
 
     def _enqueue(self, item: tuple) -> None:
-        while True:
-            try:
-                self._q.put_nowait(item)
-                return
-            except queue.Full:
-                try:
-                    self._q.get_nowait()
-                    self.stats.dropped += 1
-                except queue.Empty:
-                    pass
+        self.stats.dropped += put_drop_oldest(self._q, item)
 
     # --- sender thread ----------------------------------------------------------------------
 

@@ -549,3 +549,13 @@ def test_command_line_exports(tmp_path):
         "PMSM_PHASE_right": 0x200, "PMSM_ENCODER_right": 0x201}
     assert ch.main(["-o", str(tmp_path)]) == 0
     assert (tmp_path / "pmsm_wire.h").read_text() == ch.render_header()
+
+
+def test_put_drop_oldest_keeps_the_newest():
+    import queue
+
+    from protocols.streaming import put_drop_oldest
+
+    q = queue.Queue(maxsize=3)
+    dropped = sum(put_drop_oldest(q, i) for i in range(10))
+    assert dropped == 7 and [q.get_nowait() for _ in range(3)] == [7, 8, 9]

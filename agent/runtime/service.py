@@ -29,6 +29,7 @@ from agent.runtime import sdnotify
 from agent.runtime.config import Config
 from agent.runtime.journal import Journal, JournalSink
 from protocols.base import Block, DriveStatus, Sink, Source
+from protocols.streaming import put_drop_oldest
 
 log = logging.getLogger("pmsm-agent.service")
 
@@ -191,18 +192,8 @@ class Service:
                 backoff = min(2 * backoff, 30.0)
         while not self.stop_event.is_set():
             block = d.source.read(timeout=0.2)
-            if block is None:
-                continue
-            while True:
-                try:
-                    d.blocks.put_nowait(block)
-                    break
-                except queue.Full:
-                    try:
-                        d.blocks.get_nowait()
-                        d.dropped += 1
-                    except queue.Empty:
-                        pass
+            if block is not None:
+                d.dropped += put_drop_oldest(d.blocks, block)
 
     def _publish(self, status: DriveStatus) -> None:
         for sink in self.sinks:
