@@ -14,13 +14,14 @@ from agent.model import Signals, Term
 
 @dataclass(frozen=True)
 class Param:
-    """One linear parameter of an effect: its name, unit, meaning and a typical magnitude (used to
-    judge whether records can reveal the effect at a realistic size)."""
+    """One linear parameter of an effect: its name, unit, meaning, a typical magnitude (used to
+    judge whether records can reveal the effect at a realistic size) and a physical lower bound."""
 
     name: str
     unit: str
     meaning: str
     typical: float
+    lower: float = -np.inf  #: physical lower bound of the value (e.g. 0: the effect has a sign)
 
 
 @dataclass(frozen=True)

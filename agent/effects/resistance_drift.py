@@ -1,4 +1,4 @@
-"""Winding resistance drifting within a record (the winding warms): R_s(t) = R_s (1 + r t)."""
+"""Winding resistance drifting within a record (the winding warms or cools): R_s(t) = R_s + dR/dt (t - t_mid)."""
 
 import numpy as np
 
@@ -11,14 +11,14 @@ def columns(sig):
 
 
 def report(v, ctx):
-    r_start = ctx["Rs_q"] - v[0] * ctx["t_mid"]  # the base R_s is the value at mid-record
-    return {"drift_per_s": float(v[0] / r_start), "dR_dt_ohm_per_s": float(v[0])}
+    return {"dR_dt_ohm_per_s": float(v[0]), "dR_over_record_ohm": float(v[0] * 2.0 * ctx["t_mid"])}
 
 
 EFFECT = Effect(
     id="resistance_drift",
-    physics="The stator resistance changes linearly during a record, R_s(t) = R_s0 (1 + r t), r in 1/s "
-            "(winding warming); the model's R_s is the mid-record value.",
+    physics="The stator resistance changes linearly during a record, R_s(t) = R_s + (dR/dt)(t - t_mid), "
+            "dR/dt in ohm/s (the winding warms by dR/dt / (R_s 0.0039/K) K/s); the model's R_s is the "
+            "mid-record value.",
     kind="voltage",
     params=(Param("dR_dt", "ohm/s", "rate of change of R_s", 0.2),),
     columns=columns, report=report,

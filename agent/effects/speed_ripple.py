@@ -1,40 +1,52 @@
-"""Speed ripple at the shaft frequency that the model's speed signal does not follow."""
+"""Rotor speed ripple at the shaft frequency that the model's speed signal does not carry."""
 
 import numpy as np
 
-from agent.effects.base import Effect, Param
+from agent.effects.base import Effect, Param, smooth_current
+
+
+def shaft_line(sig) -> np.ndarray:
+    """Unit sinusoid (N,) at the shaft frequency f_r = fe/p in phase with the speed error
+    d theta_e/dt - omega_e: the ripple of the frame's rotation that the speed signal lacks.
+
+    A narrow-band speed (the PLL's) under an angle that follows the rotor (the workbench's frame,
+    :func:`agent.workbench.fitting.follow_current`) leaves the rotor's speed ripple in this
+    difference; the phase is read from the record itself, since theta_e / p fixes the shaft angle
+    only up to a multiple of 2 pi / p."""
+    th = sig.theta_e / (sig.pole_pairs or 1)
+    err = np.gradient(sig.theta_e) / sig.ts - sig.omega_e
+    line = np.sum((err - err.mean()) * np.exp(-1j * th))
+    return np.cos(th + np.angle(line)) if line else np.cos(th)  # line ~ e^{-j phase}
 
 
 def columns(sig):
-    # The shaft angle is theta_e / p up to a multiple of 2 pi / p that differs from record to record,
-    # so the ripple's phase is referred to the record's own d-voltage line at the shaft frequency.
-    th = sig.theta_e / (sig.pole_pairs or 1)
-    ref = np.angle(np.sum(sig.v_dq[0] * np.exp(-1j * th)))
-    c, s = np.cos(th - ref), np.sin(th - ref)
-    z = np.zeros_like(c)
-    return np.stack((np.stack((c, z)), np.stack((s, z)), np.stack((z, c)), np.stack((z, s))))
+    # the model uses omega_e where the rotor turns at omega_e + dw: it misses j dw psi, i.e.
+    # d: + dw L_q i_q, q: - dw psi_m.  With dw = W u(t): d column i_q u (V per ohm), q column -u (V per V)
+    u = shaft_line(sig)
+    iq = smooth_current(sig)[0][1]
+    return np.stack((np.stack((iq * u, np.zeros_like(u))), np.stack((np.zeros_like(u), -u))))
 
 
 def report(v, ctx):
-    # frame wobble eps = a/v_q rotates the dq frame; delta omega_e = eps * omega_r
-    amp_d = float(np.hypot(v[0], v[1]))
-    return {"ripple_V": amp_d, "omega_e_ripple_rad_s": amp_d / ctx["v_q"] * ctx["omega_r"],
-            "q_ripple_V": float(np.hypot(v[2], v[3]))}
+    # headline from d: L_q is measured within 1-2 %, psi_m only together with R_s at one load
+    return {"omega_e_ripple_rad_s": float(v[0] / ctx["Lq"]), "omega_e_ripple_from_q_rad_s": float(v[1] / ctx["psi_m"]),
+            "q_emf_ripple_V": float(v[1])}
 
 
 EFFECT = Effect(
     id="speed_ripple",
-    physics="The rotor speed oscillates at the shaft frequency f_r = fe/p (a load or coupling torque "
-            "ripple), delta omega_e in rad/s, which the speed and angle used by the model do not follow "
-            "(PLL bandwidth, lumped speed): a voltage ripple at f_r on d (frame wobble, L_q i_q delta "
-            "omega_e) and q (psi_m delta omega_e).",
+    physics="The rotor speed ripples at the shaft frequency f_r = fe/p (a coupling, load or unbalance "
+            "torque once per revolution) by delta omega_e (rad/s), which the model's narrow-band speed "
+            "signal does not carry: it misses the back-EMF ripple psi_m delta omega_e on q (V) and "
+            "L_q i_q delta omega_e on d.",
     kind="voltage",
-    params=(Param("d_in", "V", "d ripple in phase with the record's d-voltage line", 2.0),
-            Param("d_quad", "V", "d ripple in quadrature", 2.0),
-            Param("q_in", "V", "q ripple in phase", 0.5),
-            Param("q_quad", "V", "q ripple in quadrature", 0.5)),
+    params=(Param("L_dw", "ohm", "L_q delta omega_e: d-axis ripple per ampere of i_q", 0.1),
+            Param("psi_dw", "V", "psi_m delta omega_e: q-axis back-EMF ripple", 0.9)),
     columns=columns, report=report,
-    signature="fe +- f_r sidebands in the phase residual (f_r = fe/p, the driving-gear line k = 1), "
-              "f_r in dq; residual binned over the shaft angle",
-    reveals="any record at speed whose speed signal does not carry the ripple (PLL angle, lumped form)",
+    signature="f_r = fe/p in dq (fe +- f_r in the phase residual, the driving-gear line k = 1), in "
+              "phase with the ripple of the angle's rotation",
+    dq_orders=(), abc_orders=(),
+    reveals="records without an encoder speed, whose angle follows the rotor (the workbench refines the "
+            "PLL's) while the speed is the PLL's narrow-band one; the agent's own PLL frame carries the "
+            "ripple as an angle error instead, which stays in its residual",
 )
