@@ -269,46 +269,47 @@ def test_report_page_renders(capsys, workflow, tmp_path):
 
 # --- why it matters for detection --------------------------------------------------------------------
 
-@pytest.fixture(scope="module")
-def ripple_baselines():
-    clean = identify_baseline([simulate(GEAR, "healthy", 80.0, 1.0, seed=500 + j) for j in range(6)], GEAR,
-                              window_s=0.5)
-    recs = [simulate(GEAR, "healthy", 80.0, 1.0, seed=500 + j, effects={"speed_ripple": 1.0}) for j in range(6)]
-    return clean, identify_baseline(recs, GEAR, window_s=0.5), recs
-
-
-def test_hidden_effect_inflates_thresholds_at_fault_lines(ripple_baselines):
-    from agent.spectrum import nearest_bin
-
-    clean, hidden, _ = ripple_baselines
-    lines = [nearest_bin(clean.thresholds.freqs_hz, f) for f in (87.5, 112.5)]
-    assert np.all(hidden.thresholds.th3[lines] > 1.1 * clean.thresholds.th3[lines])
+LOWER_SIDEBANDS = (87.5, 75.0, 62.5)  #: Hz, fe - k f_gl, k = 1..3 (gear_driven family at 100 Hz)
 
 
 @pytest.fixture(scope="module")
-def ripple_fixed(ripple_baselines):
-    _, hidden, recs = ripple_baselines
-    ref, _ = add_effects(hidden, prepare(recs, GEAR), ["speed_ripple"])
-    return identify_baseline(recs, GEAR, window_s=0.5, model=ref.model)
+def delay_baselines():
+    """Eight healthy 2 s records with a hidden one-sample voltage-channel delay: the paper's baseline
+    identified on them, the same on records without the delay, and the model `add-effect` writes
+    (its thresholds relearned on the same records)."""
+    recs = [simulate(GEAR, "healthy", 80.0, 2.0, seed=500 + j, effects={"voltage_delay": 1.0}) for j in range(8)]
+    clean = identify_baseline([simulate(GEAR, "healthy", 80.0, 2.0, seed=500 + j) for j in range(8)], GEAR,
+                              window_s=1.0)
+    hidden = identify_baseline(recs, GEAR, window_s=1.0)
+    ref, _ = add_effects(hidden, prepare(recs, GEAR), ["voltage_delay"])
+    return clean, hidden, identify_baseline(recs, GEAR, window_s=1.0, model=ref.model)
 
 
-def test_adding_the_effect_lowers_th3_at_the_fault_lines(ripple_baselines, ripple_fixed):
+def _th3(base, freqs):
     from agent.spectrum import nearest_bin
 
-    hidden = ripple_baselines[1]
-    lines = [nearest_bin(hidden.thresholds.freqs_hz, f) for f in (87.5, 112.5)]
-    assert np.all(ripple_fixed.thresholds.th3[lines] < 0.95 * hidden.thresholds.th3[lines])
+    return base.thresholds.th3[[nearest_bin(base.thresholds.freqs_hz, f) for f in freqs]]
 
 
-@pytest.mark.xfail(reason="measured: slight wear reads normal/normal/caution before and normal x3 after; the "
-                          "speed_ripple columns also take up part of the fault's sidebands (docs/workbench.md)",
-                   strict=False)
-def test_after_adding_the_effect_the_slight_fault_shows(ripple_baselines, ripple_fixed):
+def test_hidden_effect_inflates_thresholds_and_adding_it_lowers_them(delay_baselines):
+    """The delay makes the baseline's response to the current loop's broadband voltage wrong; the
+    residual floor rises at the fault lines, and falls again once the model has the effect."""
+    clean, hidden, fixed = delay_baselines
+    assert np.all(_th3(hidden, LOWER_SIDEBANDS) > 1.25 * _th3(clean, LOWER_SIDEBANDS))
+    assert np.all(_th3(fixed, LOWER_SIDEBANDS) < 0.8 * _th3(hidden, LOWER_SIDEBANDS))
+
+
+def test_after_adding_the_effect_the_slight_fault_shows(delay_baselines):
+    """A slight tooth wear (10 % of the severe one) that the hidden effect's inflated thresholds read
+    as normal is flagged with the model that has the effect."""
     from agent.decision import diagnose
 
-    hidden = ripple_baselines[1]
-    faults = [simulate(GEAR, "gear_slight_wear", 80.0, 1.0, seed=600 + j, effects={"speed_ripple": 1.0})
-              for j in range(3)]
+    _, hidden, fixed = delay_baselines
+    faults = [simulate(GEAR, "gear_severe_wear", 80.0, 2.0, seed=600 + j, severity=0.1,
+                       effects={"voltage_delay": 1.0}) for j in range(6)]
     before = [diagnose(hidden, r).spectrum_state for r in faults]
-    after = [diagnose(ripple_fixed, r).spectrum_state for r in faults]
-    assert "normal" in before and sum(s != "normal" for s in after) > sum(s != "normal" for s in before)
+    after = [diagnose(fixed, r).spectrum_state for r in faults]
+    assert any(b == "normal" and a != "normal" for b, a in zip(before, after)), (before, after)
+    assert sum(s != "normal" for s in after) > sum(s != "normal" for s in before)
+    healthy = [simulate(GEAR, "healthy", 80.0, 2.0, seed=900 + j, effects={"voltage_delay": 1.0}) for j in range(6)]
+    assert all(diagnose(fixed, r).spectrum_state == "normal" for r in healthy)

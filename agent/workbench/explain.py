@@ -31,10 +31,10 @@ CONTROL_NFEV = 100  #: iteration budget of the control refit (the candidates sta
 
 
 def start_values(model) -> dict:
-    """Physical starting point (Rs_d, Rs_q, Lq_x) from a dq model, where plausible."""
+    """Physical starting point (Rs_q, Lq_x) of the free run from a dq model, where plausible."""
     p = model.physical()
-    guess = {"Rs_d": p["Rs_d"], "Rs_q": p["Rs_q"], "Lq_x": p["Lq_from_d"]}
-    fallback = {"Rs_d": 1.0, "Rs_q": 1.0, "Lq_x": 0.01}
+    guess = {"Rs_q": p["Rs_q"], "Lq_x": p["Lq_from_d"]}
+    fallback = {"Rs_q": 1.0, "Lq_x": 0.01}
     return {k: v if np.isfinite(v) and 1e-4 < v < 1e3 else fallback[k] for k, v in guess.items()}
 
 

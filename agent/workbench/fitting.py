@@ -55,11 +55,12 @@ SETTLE_S = 0.1  #: s dropped at the start of records whose angle comes from the 
 FIT_FRACTION = 0.5  #: share of each record used for fitting; the rest is held out
 BLOCK_S = 0.1  #: s, block length of the held-out significance test
 FRAME_CUTOFF = 0.5  #: the workbench's angle follows the current vector below this fraction of fe
+L_MAX_H = 10.0  #: H, the inductance taken when the one-step regression sees no response to the voltage
 TAU_MIN_S, TAU_MAX_S = 0.5e-3, 0.1  #: s, range of the electrical time constants L_x / R_s,x of a refit
 WITHIN_MIN = 0.01  #: share of an effect column's energy that must vary within records for one_step to fit it
 DECIMATE = 4  #: the fit's error is read at every DECIMATE-th sample (the free run is simulated at all)
-_SCALE = np.array([1.0, 1.0, 1e-2])  # R_s,d ohm, R_s,q ohm, L_qx H
-NONLINEAR = ("Rs_d", "Rs_q", "Lq_x")
+_SCALE = np.array([1.0, 1e-2])  # R_s,q ohm, L_qx H
+NONLINEAR = ("Rs_q", "Lq_x")
 
 
 @dataclass
@@ -155,15 +156,16 @@ def base_model(form: str, ts: float, fe_hz: float, phys: dict, effect_ids=(), va
 
 @dataclass
 class OneStep:
-    """Result of :func:`one_step`: inductances (H) and the voltage effects' parameters (their units)."""
+    """Result of :func:`one_step`."""
 
-    ld: float
-    lq: float
-    values: dict
+    ld: float  #: H
+    lq: float  #: H
+    rs_d: float  #: ohm, the d axis's resistance
+    values: dict  #: voltage effect id -> parameter values (their units)
 
 
 def one_step(preps: list[Prepared], effect_ids=()) -> OneStep:
-    """L_d, L_q and the parameters of the voltage effects that act within a record, from the
+    """L_d, L_q, R_s,d and the parameters of the voltage effects that act within a record, from the
     one-step regression of the ``speed`` form pooled over the fit segments and compensated for the
     channels' white noise.
 
@@ -207,8 +209,11 @@ def one_step(preps: list[Prepared], effect_ids=()) -> OneStep:
         gi = np.linalg.pinv(g / np.outer(scale, scale), rcond=1e-12) / np.outer(scale, scale)
         theta = gi @ h
         s2 = max(yy - 2 * theta @ h + theta @ g @ theta, 0.0) / max(cnt - n - n_rec, 1)
-        b = theta[2]  # column 2 is v_d / v_q: coefficient T_s / L
-        ls.append(preps[0].sig.ts / b)
+        ts = preps[0].sig.ts
+        b = max(theta[2], ts / L_MAX_H) if np.isfinite(theta[2]) else ts / L_MAX_H  # column 2: v_d / v_q, T_s / L
+        ls.append(ts / b)
+        if axis == 0:
+            rs_d = (1 - theta[0]) / b  # column 0: i_d, 1 - R_s T_s / L_d
         cols = slice(len(base), n)
         est.append(theta[cols] / b)
         var.append(np.where(np.diag(g)[cols] > 0, s2 * np.diag(gi)[cols] / b**2, np.inf))  # a zero column: no estimate
@@ -219,7 +224,7 @@ def one_step(preps: list[Prepared], effect_ids=()) -> OneStep:
         if within[e_idx] >= WITHIN_MIN * total[e_idx]:
             values[e.id] = np.maximum(combined[j:j + len(e.params)], [p.lower for p in e.params])
         j += len(e.params)
-    return OneStep(float(ls[0]), float(ls[1]), values)
+    return OneStep(float(ls[0]), float(ls[1]), float(rs_d), values)
 
 
 def zero_sequence_sigma(x_abc: np.ndarray) -> float:
@@ -276,21 +281,24 @@ class Refit:
 def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: dict | None = None,
           max_nfev: int = 40) -> Refit:
     """Refit of (R_s,d, R_s,q, L_d, L_q, L_qx, psi_m) and the effects' parameters on the fit segments:
-    L_d, L_q by :func:`inductances`, the rest by free-run output error, with one psi_m per record
-    (its magnet temperature; the model keeps their mean).
+    L_d, L_q, R_s,d and the within-record voltage effects by :func:`one_step`; R_s,q, L_qx, one
+    psi_m per record (its magnet temperature; the model keeps their mean) and the other effects by
+    free-run output error, from ``start`` (Rs_q, Lq_x).
 
     Like the paper's lumped coefficients, each axis has its own R_s and L_qx is L_q as the d axis
-    sees it in omega_e L_q i_q (chord against incremental L_q under saturation). These are
-    *effective* values: the currents are closed-loop, and a free run driven by the measured voltage
-    turns any static voltage error the model lacks into a current error of gain 1/R_s, which the
-    drive's controller does not let happen; the fit answers by raising R_s, on the nearly
-    current-free d axis without limit. The time constants L_x / R_s,x are therefore kept above
-    ``TAU_MIN_S`` (machines of this class have several ms), so that a missing effect cannot be
-    hidden by an absurd resistance."""
+    sees it in omega_e L_q i_q (chord against incremental L_q under saturation). Why R_s,d not by
+    free run: the currents are closed-loop, and a free run driven by the measured voltage turns any
+    voltage error the model lacks into a current error of gain 1/R_s, which the drive's controller
+    does not let happen; the fit answers by raising R_s, on the nearly current-free d axis without
+    limit (to 10 times its value on the rig simulator). Such a model no longer responds like the
+    motor, and the agent's residual, which carries the transmission's signature as the model's
+    error in the PLL frame, loses part of it (slight gear wear: 12 of 20 records flagged instead
+    of 18). The time constants L_x / R_s,x stay within ``TAU_MIN_S``..``TAU_MAX_S``."""
     ts = preps[0].sig.ts
     w_op = 2 * np.pi * fe_hz
     step = one_step(preps, effect_ids)
     ld, lq = step.ld, step.lq
+    rd_fixed = float(np.clip(step.rs_d, ld / TAU_MAX_S, ld / TAU_MIN_S))
     every = [get_effect(e) for e in effect_ids]
     solved = [e for e in every if e.id not in step.values]  # the rest are set by one_step
     data = []
@@ -306,7 +314,8 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
     def responses(z, effs):
         """Per record: (measured current less the free run from the voltages, (n_rec + m, 2, N')
         free-run responses to each record's psi_m and to each column of ``effs``)."""
-        rs_d, rs_q, lq_x = np.exp(z) * _SCALE
+        rs_q, lq_x = np.exp(z) * _SCALE
+        rs_d = rd_fixed
         a0, a1 = DQModel(form, ts, *_thetas(form, ts, w_op, rs_d, rs_q, ld, lq, lq_x, 0.0)).state_matrices()
         b = np.array([ts / ld, ts / lq])[:, None]
         for rec, (omega, v, i, cols) in enumerate(data):
@@ -353,9 +362,9 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
         res = np.concatenate([(y - np.tensordot(alpha, s, 1)).ravel() for y, s in parts])
         return np.nan_to_num(res, nan=1e3, posinf=1e3, neginf=-1e3)
 
-    start = {**{"Rs_d": 1.0, "Rs_q": 1.0, "Lq_x": 0.01}, **(start or {})}
-    hi = np.log(np.array([ld / TAU_MIN_S, lq / TAU_MIN_S, 10 * lq]) / _SCALE)
-    lo = np.log(np.array([ld / TAU_MAX_S, lq / TAU_MAX_S, 0.1 * lq]) / _SCALE)
+    start = {**{"Rs_q": 1.0, "Lq_x": 0.01}, **(start or {})}
+    hi = np.log(np.array([lq / TAU_MIN_S, 10 * lq]) / _SCALE)
+    lo = np.log(np.array([lq / TAU_MAX_S, 0.1 * lq]) / _SCALE)
     z0 = np.clip(np.log(np.array([start[k] for k in NONLINEAR]) / _SCALE), lo + 1e-6, hi - 1e-6)
     sol = scipy.optimize.least_squares(residual, z0, bounds=(lo, hi), method="trf", max_nfev=max_nfev,
                                        diff_step=1e-4, verbose=0, ftol=1e-7, xtol=1e-7)
@@ -367,7 +376,7 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
         values[e.id] = alpha[j:j + len(e.params)]
         j += len(e.params)
     values = {e.id: values[e.id] for e in every}
-    phys = {**dict(zip(NONLINEAR, (np.exp(sol.x) * _SCALE).tolist())), "Ld": ld, "Lq": lq,
+    phys = {**dict(zip(NONLINEAR, (np.exp(sol.x) * _SCALE).tolist())), "Rs_d": rd_fixed, "Ld": ld, "Lq": lq,
             "psi_m": float(np.mean(alpha[:n_rec]))}
     model = base_model(form, ts, fe_hz, phys, effect_ids, values)
     unique = {e.id: (0.0, 0.0) for e in every}
