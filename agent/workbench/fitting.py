@@ -97,8 +97,8 @@ def prepare(records: list[Record], profile: DriveProfile, max_fit_s: float = 0.5
 
 
 def follow_current(sig: Signals, rec: Record) -> Signals:
-    """``sig`` with its PLL angle refined by the current vector's angle below ``FRAME_CUTOFF`` x fe
-    (zero phase), rotated into that frame; the speed stays the PLL's.
+    """``sig`` rotated into the frame of the current vector's angle low-passed at ``FRAME_CUTOFF``
+    x fe (zero phase; the PLL's angle only unwraps it); the speed stays the PLL's.
 
     The agent's PLL is deliberately narrow (3 Hz): the transmission's speed ripple (mesh and shaft
     frequencies, 10-80 Hz on the rig) must stay in its residual. For judging the *motor* model that
@@ -108,10 +108,11 @@ def follow_current(sig: Signals, rec: Record) -> Signals:
     below fe/2 is the rotor's; what the effects put in the current angle (at fe and above) is left
     out. The speed stays the narrow-band one that the agent's model uses (see ``speed_ripple``)."""
     ab = CLARKE[:2] @ rec.i_abc
-    dev = np.unwrap(np.angle((ab[0] + 1j * ab[1]) * np.exp(-1j * (sig.theta_e + 0.5 * np.pi))))
+    angle = sig.theta_e + np.unwrap(np.angle((ab[0] + 1j * ab[1]) * np.exp(-1j * (sig.theta_e + 0.5 * np.pi))))
+    line = np.polyval(np.polyfit(np.arange(sig.n), angle, 1), np.arange(sig.n))
     fc = FRAME_CUTOFF * np.mean(sig.omega_e) / (2 * np.pi)
     sos = butter(4, fc, fs=1.0 / sig.ts, output="sos")
-    theta = sig.theta_e + sosfiltfilt(sos, dev, padlen=min(sig.n - 1, int(5.0 / (fc * sig.ts))))  # 5 periods
+    theta = line + sosfiltfilt(sos, angle - line, padlen=min(sig.n - 1, int(5.0 / (fc * sig.ts))))  # 5 periods
     return Signals.from_abc(rec.v_abc, rec.i_abc, theta, sig.omega_e, sig.ts, sig.pole_pairs)
 
 
@@ -176,22 +177,27 @@ def one_step(preps: list[Prepared], effect_ids=()) -> OneStep:
     (:func:`noise_columns`) and is subtracted (bias-compensated least squares). An effect parameter
     p enters as (T_s/L_x) p; each axis gives an estimate, combined by inverse variance. Effects
     whose columns barely vary within a record (less than ``WITHIN_MIN`` of their energy: a level
-    per record, like saturation) are left to the free run, as are output effects, which act on the
-    measurement."""
+    per record, like saturation) are left to the free run, as are output effects (y = x + o), which
+    enter here only as o(k+1) - o(k) so that they do not bias the rest."""
     effs = [e for e in map(get_effect, effect_ids) if e.kind == "voltage"]
+    outs = [e for e in map(get_effect, effect_ids) if e.kind == "output"]
     terms_v = [e.terms() for e in effs]
-    n_rec = len(preps)
+    n_rec, n_out = len(preps), sum(len(e.params) for e in outs)
     est, var, ls = [], [], []
     within, total = np.zeros(len(effs)), np.zeros(len(effs))
     for axis, base in enumerate(BASE_TERMS["speed"]):
         terms = base + tuple(t for d_q in terms_v for t in d_q[axis])
         n = len(terms)
-        g, h, yy, cnt = np.zeros((n + n_rec, n + n_rec)), np.zeros(n + n_rec), 0.0, 0
+        m = n + n_out + n_rec
+        g, h, yy, cnt = np.zeros((m, m)), np.zeros(m), 0.0, 0
         for j, p in enumerate(preps):
             s = p.sig.slice(0, p.split)
-            x = np.zeros((s.n - 1, n + n_rec))
+            x = np.zeros((s.n - 1, m))
             x[:, :n] = regressors(terms, s)[:-1]
-            x[:, n + j] = 1.0
+            if outs:  # y = x + o: o(k+1) - A o(k), A ~ I to 1 %
+                o = np.concatenate([e.cols(s)[:, axis] for e in outs])
+                x[:, n:n + n_out] = np.diff(o, axis=1).T
+            x[:, n + n_out + j] = 1.0
             y = s.i_dq[axis, 1:]
             xn = noise_columns(terms, s)[:-1]
             g += x.T @ x
@@ -208,7 +214,7 @@ def one_step(preps: list[Prepared], effect_ids=()) -> OneStep:
         scale = np.sqrt(np.abs(np.diag(g))) + 1e-30
         gi = np.linalg.pinv(g / np.outer(scale, scale), rcond=1e-12) / np.outer(scale, scale)
         theta = gi @ h
-        s2 = max(yy - 2 * theta @ h + theta @ g @ theta, 0.0) / max(cnt - n - n_rec, 1)
+        s2 = max(yy - 2 * theta @ h + theta @ g @ theta, 0.0) / max(cnt - m, 1)
         ts = preps[0].sig.ts
         b = max(theta[2], ts / L_MAX_H) if np.isfinite(theta[2]) else ts / L_MAX_H  # column 2: v_d / v_q, T_s / L
         ls.append(ts / b)
