@@ -129,6 +129,20 @@ def test_null_set_claims_nothing(base80):
     assert all(c["explained_fraction"] < 0.3 for c in doc["candidates"])
 
 
+def test_speed_ripple_stays_in_the_agents_residual():
+    """The effect's speed error line carries the rotor's ripple in the workbench's frame (within
+    10 %) and about a tenth of it in the agent's PLL frame, where angle and speed agree."""
+    from agent.effects.speed_ripple import speed_error_line
+    from agent.identify import record_signals
+
+    rec = simulate(GEAR, "healthy", 80.0, 1.2, seed=5, effects={"speed_ripple": 1.0})
+    amp = lambda sig: np.sqrt(2.0) * np.std(speed_error_line(sig))  # noqa: E731
+    true = rec.meta["speed_ripple_omega_e"]
+    assert amp(prepare([rec], GEAR)[0].sig) == pytest.approx(true, rel=0.1)
+    agent = record_signals(rec, GEAR)
+    assert amp(agent.slice(int(0.1 / GEAR.ts), agent.n)) < 0.15 * true  # after the PLL's lock-in
+
+
 def test_one_load_saturation_is_reported_not_identifiable(base80):
     recs = [simulate(GEAR, "healthy", 80.0, 1.0, seed=210 + j, effects={"magnetic_saturation": 0.15})
             for j in range(4)]

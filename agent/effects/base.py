@@ -33,8 +33,9 @@ class Effect:
     L di/dt = v - R i - ... (the dq model's column is scaled by T_s/L_d and T_s/L_q);
     ``kind="output"``: A per parameter unit, added to the measured current.
     ``report(values, ctx) -> dict`` turns the fitted parameter values into physical quantities
-    (``ctx``: the fitted base model, ``Rs`` ohm, ``Ld``/``Lq`` H, ``psi_m`` Wb, ``i_rated`` A peak,
-    ``t_mid`` s); its first key is the headline figure, named with its unit.
+    (``ctx``: the fitted base values ``Rs_d``/``Rs_q`` ohm, ``Ld``/``Lq``/``Lq_x`` H, ``psi_m`` Wb,
+    ``i_rated`` A peak, ``ts`` and ``t_mid`` s, ``signals``: the records' Signals); its first key is
+    the headline figure, named with its unit.
     """
 
     id: str

@@ -39,14 +39,13 @@ def start_values(model) -> dict:
 
 
 def context(ref, preps: list[Prepared], profile) -> dict:
-    """What an effect's ``report`` needs: fitted base values and record facts."""
+    """What an effect's ``report`` needs: fitted base values, the rated current, the records' signals."""
     m = profile.motor
     i_rated = (m.rated_current_a * np.sqrt(2) if m.rated_current_a
                else m.rated_torque_nm / (1.5 * m.pole_pairs * max(ref.phys["psi_m"], 1e-3)))
     return {**ref.phys, "i_rated": float(i_rated), "ts": profile.ts,
             "t_mid": float(np.mean([0.5 * p.sig.n * p.sig.ts for p in preps])),
-            "v_q": float(np.mean([np.mean(p.sig.v_dq[1]) for p in preps])),
-            "omega_r": float(np.mean([np.mean(p.sig.omega_e) for p in preps])) / m.pole_pairs}
+            "signals": [p.sig for p in preps]}
 
 
 def operating_warnings(baseline, preps: list[Prepared]) -> list[str]:
