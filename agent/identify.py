@@ -147,7 +147,8 @@ def constrain(fit: FitResult, psi_m: float | None = None) -> None:
     model = fit.model
     w = 2 * np.pi * model.fe_hz
     nd, nq = len(BASE_TERMS[model.form][0]), len(BASE_TERMS[model.form][1])
-    chol_d, chol_q = _sqrt_info(fit.info_d), _sqrt_info(fit.info_q)
+    # the base parameters' block: the extra terms (effects) keep their estimates
+    chol_d, chol_q = _sqrt_info(fit.info_d[:nd, :nd]), _sqrt_info(fit.info_q[:nq, :nq])
     scale = np.array([1.0, 1e-2, 1e-2, 0.1])  # Rs ohm, Ld H, Lq H, psi_m Wb: typical magnitudes
     phys = model.physical(w)
     guess = np.array([phys["Rs_q"], phys["Ld"], phys["Lq"], phys["psi_m"] if psi_m is None else psi_m])

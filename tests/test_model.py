@@ -130,6 +130,23 @@ def test_constrained_fit_on_data_that_hides_an_effect():
         assert all(fit.model.physical()[k] > 0 for k in ("Rs_q", "Ld", "Lq", "psi_m"))
 
 
+def test_constrained_fit_keeps_the_effect_terms():
+    """With effect columns in the regression, constraining replaces the base parameters only: the
+    effect coefficients keep the raw estimate and the model stays plausible."""
+    from agent.effects import model_terms
+
+    sig = euler_plant(seed=11)
+    v = sig.v_dq.copy()
+    v[0] += 40.0
+    shifted = Signals.from_abc(dq_to_abc(v, sig.theta_e + 0.5 * sig.omega_e * TS), sig.i_abc, sig.theta_e, sig.omega_e, TS)
+    extra = model_terms(["flux_harmonics"])
+    raw = fit_record(shifted, PROFILE, "lumped", extra, prefilter_hz=None, plausible=False)
+    fit = fit_record(shifted, PROFILE, "lumped", extra, prefilter_hz=None)
+    assert fit.model.is_plausible()[0] and fit.constrained == (raw.reason != "ok")
+    np.testing.assert_array_equal(fit.model.theta_d[3:], raw.model.theta_d[3:])
+    np.testing.assert_array_equal(fit.model.theta_q[4:], raw.model.theta_q[4:])
+
+
 def test_torque_regression_recovers_b_gt():
     n = 25_000
     omega_e = np.full(n, 2 * np.pi * 100)
