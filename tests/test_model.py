@@ -132,19 +132,20 @@ def test_constrained_fit_on_data_that_hides_an_effect():
 
 def test_constrained_fit_keeps_the_effect_terms():
     """With effect columns in the regression, constraining replaces the base parameters only: the
-    effect coefficients keep the raw estimate and the model stays plausible."""
+    effect coefficients keep their estimates and the model becomes plausible."""
     from agent.effects import model_terms
+    from agent.identify import FitResult, constrain
 
-    sig = euler_plant(seed=11)
-    v = sig.v_dq.copy()
-    v[0] += 40.0
-    shifted = Signals.from_abc(dq_to_abc(v, sig.theta_e + 0.5 * sig.omega_e * TS), sig.i_abc, sig.theta_e, sig.omega_e, TS)
-    extra = model_terms(["flux_harmonics"])
-    raw = fit_record(shifted, PROFILE, "lumped", extra, prefilter_hz=None, plausible=False)
-    fit = fit_record(shifted, PROFILE, "lumped", extra, prefilter_hz=None)
-    assert fit.model.is_plausible()[0] and fit.constrained == (raw.reason != "ok")
-    np.testing.assert_array_equal(fit.model.theta_d[3:], raw.model.theta_d[3:])
-    np.testing.assert_array_equal(fit.model.theta_q[4:], raw.model.theta_q[4:])
+    w = 2 * np.pi * 100
+    extra_d, extra_q = model_terms(["flux_harmonics"])
+    d, q = lumped_params("lumped", TS, -0.5, LD, LQ, PSI, w)  # negative R: implausible
+    model = DQModel("lumped", TS, np.append(d, [1e-3, 2e-3]), np.append(q, [3e-3, 4e-3]), extra_d, extra_q,
+                    fe_hz=100.0)
+    fit = FitResult(model, np.zeros(2), np.eye(5) * 1e6, np.eye(6) * 1e6)
+    constrain(fit, PSI)
+    assert fit.model.is_plausible()[0]
+    np.testing.assert_array_equal(fit.model.theta_d[3:], [1e-3, 2e-3])
+    np.testing.assert_array_equal(fit.model.theta_q[4:], [3e-3, 4e-3])
 
 
 def test_torque_regression_recovers_b_gt():
