@@ -241,8 +241,10 @@ def test_report_page_renders(capsys, workflow, tmp_path):
     if browser is None:
         pytest.skip("no headless Chromium installed (apt-get install -y chromium)")
     shot = tmp_path / "shot.png"
-    subprocess.run([browser, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
-                    "--window-size=1250,2400", f"--screenshot={shot}", page.as_uri()],
+    subprocess.run([browser, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars", "--no-first-run",
+                    "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                    f"--user-data-dir={tmp_path / 'chromium'}", "--window-size=1250,2400", f"--screenshot={shot}",
+                    page.as_uri()],
                    capture_output=True, timeout=120, check=False)
     assert shot.exists() and shot.stat().st_size > 50_000  # a blank page is a few kB
 
