@@ -22,6 +22,7 @@ EFFECT = Effect(
     report=lambda v, ctx: {"delay_samples": float(v[0]), "delay_us": float(v[0] * ctx["ts"] * 1e6)},
     signature="residual correlated with the voltage increment v(k+1) - v(k) (cross-correlation with the "
               "input at lag +-1); at constant speed mostly a rotation of the voltage by omega_e d T_s",
-    reveals="speed or load steps, or records at another operating point: at one constant speed the "
-            "rotation omega_e d T_s is absorbed into the lumped parameters",
+    reveals="any record with the current loop's broadband voltage (the one-step regression reads the delay "
+            "sample to sample); with a smooth voltage at one constant speed it is only a rotation "
+            "omega_e d T_s, absorbed into the lumped parameters: speed or load steps reveal it then",
 )

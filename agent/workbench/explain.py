@@ -6,8 +6,8 @@ same fit segments: this alone absorbs a change of load or temperature) plus one 
 it explains is ``1 - SSE(candidate) / SSE(control)`` on the held-out segments. Significance: a
 one-sided t-test over ``BLOCK_S`` blocks of the held-out error (control minus candidate),
 Bonferroni-corrected over the candidates, plus a practical floor ``MIN_EXPLAINED``. An effect
-whose typical-size response the base parameters would absorb (``SHARE_FLOOR``, ``VISIBLE_FLOOR``) is reported as
-not identifiable from these records, with the data that would reveal it.
+the records cannot pin down (:attr:`agent.workbench.fitting.Refit.identifiable`) is reported as not
+identifiable from these records, with the data that would reveal it.
 """
 
 from __future__ import annotations
@@ -25,8 +25,6 @@ from agent.workbench.fitting import NONLINEAR, Prepared, heldout, refit
 
 ALPHA = 0.01  #: family-wise significance level of the block test
 MIN_EXPLAINED = 0.10  #: an effect must explain at least this share of the control's held-out error
-VISIBLE_FLOOR = 5e-4  #: NRMSE a typical-size effect must leave beyond what the base parameters absorb
-SHARE_FLOOR = 0.02  #: and the share of its response they cannot absorb
 CONTROL_NFEV = 100  #: iteration budget of the control refit (the candidates start from its result)
 
 
@@ -92,20 +90,21 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
     rows = []
     for eid, r in zip(candidates, fits):
         h = heldout(r.model, preps)
-        share, visible = r.unique[eid]
+        identifiable, how = r.identifiable[eid]
         explained = 1.0 - float(np.sum(h["blocks"]) / max(np.sum(h_ctrl["blocks"]), 1e-300))
         p_value = _block_p(h_ctrl["blocks"], h["blocks"])
-        identifiable = bool(visible >= VISIBLE_FLOOR and share >= SHARE_FLOOR)
         eff = EFFECTS[eid]
         row = {"effect": eid, "nrmse_after": h["total"], "explained_fraction": explained,
                "significant": bool(identifiable and explained >= MIN_EXPLAINED
                                    and p_value < ALPHA / len(candidates)),
                "p_value": p_value, "identifiable": identifiable,
                "params": eff.report(r.values[eid], context(r, preps, baseline.profile)),
-               "nrmse_after_dq": {"d": h["d"], "q": h["q"]}, "unabsorbed_share": share}
+               "nrmse_after_dq": {"d": h["d"], "q": h["q"]}, "identifiability": how}
         if not identifiable:
-            row["note"] = (f"not identifiable from these records: a typical {eid} would be absorbed into the "
-                           f"base parameters; revealed by {eff.reveals}")
+            why = ("the one-step regression pins it to no better than +-{:.0%} of a typical size".format(
+                how["relative_se"]) if how["stage"] == "one-step" else
+                "a typical one would be absorbed into the base parameters")
+            row["note"] = f"not identifiable from these records: {why}; revealed by {eff.reveals}"
         rows.append(row)
     rows.sort(key=lambda r: (r["significant"], r["explained_fraction"]), reverse=True)
     return {"nrmse_before": before["total"], "nrmse_control": h_ctrl["total"],

@@ -58,6 +58,9 @@ FRAME_CUTOFF = 0.5  #: the workbench's angle follows the current vector below th
 L_MAX_H = 10.0  #: H, the inductance taken when the one-step regression sees no response to the voltage
 TAU_MIN_S, TAU_MAX_S = 0.5e-3, 0.1  #: s, range of the electrical time constants L_x / R_s,x of a refit
 WITHIN_MIN = 0.01  #: share of an effect column's energy that must vary within records for one_step to fit it
+PRECISION = 0.1  #: a one-step effect is identifiable when its standard error is at most this share of a typical size
+SHARE_FLOOR = 0.02  #: a free-run effect is identifiable when the base parameters leave this share of its response
+VISIBLE_FLOOR = 5e-4  #: and that unabsorbed part is at least this NRMSE
 DECIMATE = 4  #: the fit's error is read at every DECIMATE-th sample (the free run is simulated at all)
 _SCALE = np.array([1.0, 1e-2])  # R_s,q ohm, L_qx H
 NONLINEAR = ("Rs_q", "Lq_x")
@@ -163,6 +166,7 @@ class OneStep:
     lq: float  #: H
     rs_d: float  #: ohm, the d axis's resistance
     values: dict  #: voltage effect id -> parameter values (their units)
+    se: dict  #: voltage effect id -> their standard errors
 
 
 def one_step(preps: list[Prepared], effect_ids=()) -> OneStep:
@@ -225,12 +229,14 @@ def one_step(preps: list[Prepared], effect_ids=()) -> OneStep:
         var.append(np.where(np.diag(g)[cols] > 0, s2 * np.diag(gi)[cols] / b**2, np.inf))  # a zero column: no estimate
     w = [np.where(np.isfinite(v), 1.0 / np.maximum(v, 1e-300), 0.0) for v in var]
     combined = (w[0] * est[0] + w[1] * est[1]) / np.maximum(w[0] + w[1], 1e-300)
-    values, j = {}, 0
+    se_all = 1.0 / np.sqrt(np.maximum(w[0] + w[1], 1e-300))
+    values, se, j = {}, {}, 0
     for e_idx, e in enumerate(effs):
         if within[e_idx] >= WITHIN_MIN * total[e_idx]:
             values[e.id] = np.maximum(combined[j:j + len(e.params)], [p.lower for p in e.params])
+            se[e.id] = se_all[j:j + len(e.params)]
         j += len(e.params)
-    return OneStep(float(ls[0]), float(ls[1]), float(rs_d), values)
+    return OneStep(float(ls[0]), float(ls[1]), float(rs_d), values, se)
 
 
 def zero_sequence_sigma(x_abc: np.ndarray) -> float:
@@ -281,7 +287,7 @@ class Refit:
     phys: dict  #: Rs_d, Rs_q ohm, Ld H, Lq H, Lq_x H (the d axis's cross-coupling inductance), psi_m Wb
     values: dict  #: effect id -> parameter values (physical units)
     cost: float
-    unique: dict  #: effect id -> share of its response that the base parameters cannot absorb
+    identifiable: dict  #: effect id -> (bool, {how it was judged})
 
 
 def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: dict | None = None,
@@ -385,29 +391,37 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
     phys = {**dict(zip(NONLINEAR, (np.exp(sol.x) * _SCALE).tolist())), "Rs_d": rd_fixed, "Ld": ld, "Lq": lq,
             "psi_m": float(np.mean(alpha[:n_rec]))}
     model = base_model(form, ts, fe_hz, phys, effect_ids, values)
-    unique = {e.id: (0.0, 0.0) for e in every}
-    if every and np.isfinite(sol.cost):  # output sensitivities to the base parameters; effects' responses
+    judged = {}
+    for e in every:
+        if e.id in step.se:  # read by the one-step regression: pinned to a fraction of a typical size?
+            rel = float(np.max(step.se[e.id] / np.array([p.typical for p in e.params])))
+            judged[e.id] = (rel <= PRECISION, {"stage": "one-step", "relative_se": rel})
+        else:
+            judged[e.id] = (False, {"stage": "free run", "unabsorbed_share": 0.0, "visible_nrmse": 0.0})
+    if solved and np.isfinite(sol.cost):  # output sensitivities to the base parameters; effects' responses
         def output(z):
             return np.concatenate([(y - np.tensordot(alpha[:n_rec], s[:n_rec], 1)).ravel()
                                    for y, s in responses(z, ())])
         y0 = output(sol.x)
         base = [(output(sol.x + 1e-4 * e) - y0) / 1e-4 for e in np.eye(len(NONLINEAR))]
-        s_all = np.concatenate([s.reshape(s.shape[0], -1) for _, s in responses(sol.x, every)], axis=1)
+        s_all = np.concatenate([s.reshape(s.shape[0], -1) for _, s in responses(sol.x, solved)], axis=1)
         i_norm = np.sqrt(sum(np.sum(d[2][:, ::DECIMATE] ** 2) for d in data))
-        unique = _unique_share(np.column_stack(base + list(s_all[:n_rec])), s_all, every, i_norm, n_rec)
-    return Refit(tuple(effect_ids), model, phys, values, float(2 * sol.cost), unique)
+        judged.update(_unabsorbed(np.column_stack(base + list(s_all[:n_rec])), s_all, solved, i_norm, n_rec))
+    return Refit(tuple(effect_ids), model, phys, values, float(2 * sol.cost), judged)
 
 
-def _unique_share(base: np.ndarray, s_all: np.ndarray, effs, i_norm: float, first: int) -> dict:
-    """Per effect: (share, visible): the share of its typical-size free-run response that the base
-    parameters (``base``: output sensitivities to the base parameters) cannot absorb (0..1),
-    and that unabsorbed part's norm over the measured current's (an NRMSE)."""
+def _unabsorbed(base: np.ndarray, s_all: np.ndarray, effs, i_norm: float, first: int) -> dict:
+    """Identifiability of effects fitted by the free run: the share of a typical-size effect's
+    free-run response that the base parameters (``base``: output sensitivities to them) cannot
+    absorb, and that unabsorbed part's norm over the measured current's (an NRMSE)."""
     q, _ = np.linalg.qr(base / np.maximum(np.linalg.norm(base, axis=0), 1e-300))
     out, j = {}, first
     for e in effs:
         resp = s_all[j:j + len(e.params)].T @ np.array([p.typical for p in e.params])
         left = float(np.linalg.norm(resp - q @ (q.T @ resp)))
-        out[e.id] = (left / max(np.linalg.norm(resp), 1e-300), left / i_norm)
+        share, visible = left / max(np.linalg.norm(resp), 1e-300), left / i_norm
+        out[e.id] = (share >= SHARE_FLOOR and visible >= VISIBLE_FLOOR,
+                     {"stage": "free run", "unabsorbed_share": share, "visible_nrmse": visible})
         j += len(e.params)
     return out
 
