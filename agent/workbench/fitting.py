@@ -178,7 +178,7 @@ def one_step(preps: list[Prepared], effect_ids=()) -> OneStep:
     record (its thermal and operating level), so that the regression reads the dynamics, not the
     records' static balance. Noise on the current and voltage samples inside X biases least
     squares (errors in variables); its share of X^T X follows from the noise levels
-    (:func:`noise_columns`) and is subtracted (bias-compensated least squares). An effect parameter
+    (:func:`noise_signals`) and is subtracted (bias-compensated least squares). An effect parameter
     p enters as (T_s/L_x) p; each axis gives an estimate, combined by inverse variance. Effects
     whose columns barely vary within a record (less than ``WITHIN_MIN`` of their energy: a level
     per record, like saturation) are left to the free run, as are output effects (y = x + o), which
@@ -187,6 +187,8 @@ def one_step(preps: list[Prepared], effect_ids=()) -> OneStep:
     outs = [e for e in map(get_effect, effect_ids) if e.kind == "output"]
     terms_v = [e.terms() for e in effs]
     n_rec, n_out = len(preps), sum(len(e.params) for e in outs)
+    segs = [p.sig.slice(0, p.split) for p in preps]
+    noise = [noise_signals(s) for s in segs]
     est, var, ls = [], [], []
     within, total = np.zeros(len(effs)), np.zeros(len(effs))
     for axis, base in enumerate(BASE_TERMS["speed"]):
@@ -194,8 +196,7 @@ def one_step(preps: list[Prepared], effect_ids=()) -> OneStep:
         n = len(terms)
         m = n + n_out + n_rec
         g, h, yy, cnt = np.zeros((m, m)), np.zeros(m), 0.0, 0
-        for j, p in enumerate(preps):
-            s = p.sig.slice(0, p.split)
+        for j, (s, (noisy, quiet)) in enumerate(zip(segs, noise)):
             x = np.zeros((s.n - 1, m))
             x[:, :n] = regressors(terms, s)[:-1]
             if outs:  # y = x + o: o(k+1) - A o(k), A ~ I to 1 %
@@ -203,7 +204,7 @@ def one_step(preps: list[Prepared], effect_ids=()) -> OneStep:
                 x[:, n:n + n_out] = np.diff(o, axis=1).T
             x[:, n + n_out + j] = 1.0
             y = s.i_dq[axis, 1:]
-            xn = noise_columns(terms, s)[:-1]
+            xn = (regressors(terms, noisy) - regressors(terms, quiet))[:-1]  # columns are affine in v, i
             g += x.T @ x
             g[:n, :n] -= xn.T @ xn
             h += x.T @ y
@@ -248,17 +249,17 @@ def zero_sequence_sigma(x_abc: np.ndarray) -> float:
     return float(np.sqrt(3.0 * np.median(per) / np.log(2.0)))
 
 
-def noise_columns(terms, s: Signals) -> np.ndarray:
-    """The regressor columns' share of the channels' white noise, (N, n): the columns computed from
-    a noise draw of the levels measured on the zero sequences, less those computed from no signal
-    (every column is affine in the voltage and current samples or free of them)."""
+def noise_signals(s: Signals) -> tuple[Signals, Signals]:
+    """(noisy, quiet): ``s``'s frame with a draw of the channels' white noise at the levels measured
+    on the zero sequences as its only voltage and current, and with none. Every regressor column is
+    affine in the voltage and current samples (or free of them), so a column computed from ``noisy``
+    less the same from ``quiet`` is the noise's share of it."""
     rng = np.random.default_rng(0)
     zero = np.zeros_like(s.v_abc)
     sv, si = zero_sequence_sigma(s.v_abc), zero_sequence_sigma(s.i_abc)
     noisy = Signals.from_abc(rng.normal(0.0, sv, zero.shape), rng.normal(0.0, si, zero.shape), s.theta_e,
                              s.omega_e, s.ts, s.pole_pairs)
-    quiet = Signals.from_abc(zero, zero, s.theta_e, s.omega_e, s.ts, s.pole_pairs)
-    return regressors(terms, noisy) - regressors(terms, quiet)
+    return noisy, Signals.from_abc(zero, zero, s.theta_e, s.omega_e, s.ts, s.pole_pairs)
 
 
 def bounded_lstsq(g: np.ndarray, h: np.ndarray, lower: np.ndarray) -> np.ndarray:
