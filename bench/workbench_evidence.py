@@ -33,7 +33,8 @@ _doc["sampling"]["voltage_source"] = "reference"
 GEAR_REF = parse_profile(_doc, source="rig_gear_reference")
 
 
-def _seconds_mean(recs) -> float:
+def _mean_dr_dt(recs) -> float:
+    """The records' mean dR_s/dt, ohm/s."""
     return float(np.mean([(r.meta["R_s_end"] - r.meta["R_s"]) / r.meta["seconds"] for r in recs]))
 
 
@@ -41,7 +42,7 @@ def _seconds_mean(recs) -> float:
 SCENARIOS = {
     "current_offset": (0.1, (80.0,), GEAR, "offset_A", lambda recs: 0.1),
     "current_gain_mismatch": (0.03, (80.0,), GEAR, "gain_b", lambda recs: 0.03),
-    "resistance_drift": (0.2, (60.0, 100.0), GEAR, "dR_dt_ohm_per_s", _seconds_mean),
+    "resistance_drift": (0.2, (60.0, 100.0), GEAR, "dR_dt_ohm_per_s", _mean_dr_dt),
     "voltage_delay": (1.0, (60.0, 100.0), GEAR, "delay_samples", lambda recs: 1.0),
     "flux_harmonics": (0.005, (80.0,), GEAR, "psi_6_Wb", lambda recs: 0.005),
     "magnetic_saturation": (0.15, (50.0, 80.0, 110.0), GEAR, "lq_drop_at_rated", lambda recs: 0.15),

@@ -11,15 +11,14 @@ error; the speed stays the PLL's.
 Two stages (:func:`refit`):
 
 1. :func:`one_step`: the one-step (equation-error) regression, bias-compensated for the white noise
-   of the current and voltage channels (levels read off their zero sequences), gives L_d, L_q and
-   the parameters of the voltage effects that act within a record. It reads them from the current's
-   sample-to-sample response to the current loop's broadband voltage;
-2. everything else by free-run output error: R_s,d, R_s,q, L_qx, psi_m per record, and the output
-   effects' (and per-record-level voltage effects') parameters. The free run is linear in psi_m and
-   those parameters once (R_s,d, R_s,q, L_qx) are fixed, so the fit is a *variable projection*: an
-   outer nonlinear least-squares over log(R_s,d, R_s,q, L_qx) whose every evaluation solves the
-   linear parameters exactly from the simulated responses of their columns (one batched numba
-   simulation per record).
+   of the current and voltage channels (levels read off their zero sequences), gives L_d, L_q, R_s,d
+   and the parameters of the voltage effects that act within a record. It reads them from the
+   current's sample-to-sample response to the current loop's broadband voltage;
+2. everything else by free-run output error: R_s,q, L_qx, psi_m per record, and the output effects'
+   (and per-record-level voltage effects') parameters. The free run is linear in psi_m and those
+   parameters once (R_s,q, L_qx) are fixed, so the fit is a *variable projection*: an outer
+   nonlinear least-squares over log(R_s,q, L_qx) whose every evaluation solves the linear parameters
+   exactly from the simulated responses of their columns (one batched numba simulation per record).
 
 Why not all by free run: the free-run error contains the model's response to what it cannot follow
 (the voltage channel's noise, a static voltage error the drive's controller corrects), and a less
@@ -311,7 +310,7 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
     w_op = 2 * np.pi * fe_hz
     step = one_step(preps, effect_ids)
     ld, lq = step.ld, step.lq
-    rd_fixed = float(np.clip(step.rs_d, ld / TAU_MAX_S, ld / TAU_MIN_S))
+    rs_d = float(np.clip(step.rs_d, ld / TAU_MAX_S, ld / TAU_MIN_S))
     every = [get_effect(e) for e in effect_ids]
     solved = [e for e in every if e.id not in step.values]  # the rest are set by one_step
     data = []
@@ -328,7 +327,6 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
         """Per record: (measured current less the free run from the voltages, (n_rec + m, 2, N')
         free-run responses to each record's psi_m and to each column of ``effs``)."""
         rs_q, lq_x = np.exp(z) * _SCALE
-        rs_d = rd_fixed
         a0, a1 = DQModel(form, ts, *_thetas(form, ts, w_op, rs_d, rs_q, ld, lq, lq_x, 0.0)).state_matrices()
         b = np.array([ts / ld, ts / lq])[:, None]
         for rec, (omega, v, i, cols) in enumerate(data):
@@ -389,7 +387,7 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
         values[e.id] = alpha[j:j + len(e.params)]
         j += len(e.params)
     values = {e.id: values[e.id] for e in every}
-    phys = {**dict(zip(NONLINEAR, (np.exp(sol.x) * _SCALE).tolist())), "Rs_d": rd_fixed, "Ld": ld, "Lq": lq,
+    phys = {**dict(zip(NONLINEAR, (np.exp(sol.x) * _SCALE).tolist())), "Rs_d": rs_d, "Ld": ld, "Lq": lq,
             "psi_m": float(np.mean(alpha[:n_rec]))}
     model = base_model(form, ts, fe_hz, phys, effect_ids, values)
     judged = {}
