@@ -17,8 +17,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agent.identify import (PREFILTER_HZ, FitResult, constrain, fit_record, psi_m_prior, record_signals,
-                            refine_output_error)
+from agent.evidence import EvidenceStats, Feature, feature_values, make_features
+from agent.identify import (PREFILTER_HZ, FitResult, cluster_point, constrain, fit_record, operating_point,
+                            psi_m_prior, record_signals, refine_output_error)
 from agent.model import DQModel, Signals
 from agent.profile import DriveProfile
 from agent.records import Record
@@ -163,6 +164,7 @@ class Baseline:
     records: list[str] = field(default_factory=list)
     settings: dict = field(default_factory=dict)
     history: list[dict] = field(default_factory=list)
+    evidence: EvidenceStats | None = None  #: healthy statistics of the alarm evidence (agent.evidence)
 
 
 class BaselineBuilder:
@@ -182,6 +184,15 @@ class BaselineBuilder:
         self.freqs: np.ndarray | None = None
         self.sources: list[str] = []
         self._model: DQModel | None = None
+        self._features: list[Feature] | None = None
+        # alarm evidence (agent.evidence): per stretch its windows' feature values, cluster point, load
+        self.stretch_windows: list[np.ndarray] = []
+        self.stretch_cluster: list[np.ndarray] = []
+        self.stretch_load: list[float] = []
+        self.hop_cluster: list[np.ndarray] = []
+        self.hop_load: list[float] = []
+        self.stretch_s = 0.0
+        self.consecutive = False  #: stretches follow each other in one stream (streaming learning)
 
     def add_fit(self, sig: Signals, source: str = "") -> FitResult:
         """Pass 1: identify one healthy record or window (Alg. 2 lines 4-8, Alg. 4 lines 6-10).
@@ -207,9 +218,34 @@ class BaselineBuilder:
         """Use ``model`` (e.g. refined, or with effects) for pass 2."""
         self._model = model
 
+    def features(self) -> list[Feature]:
+        """The alarm features (unique sideband pairs) at the fits' median electrical frequency."""
+        if self._features is None:
+            fe = float(np.median([f.operating_point["fe_hz"] for f in self.fits]))
+            window_s = self.settings["window_s"]
+            self._features = make_features(self.profile, fe, (SEARCH_BINS + 0.5) / window_s, F_MAX_HZ)
+        return self._features
+
     def add_spectra(self, sig: Signals) -> None:
-        """Pass 2: residual spectra of every window of one record (Alg. 3 lines 3-9)."""
-        self.add_window_spectra(*residual_spectra(self.model(), sig, self.settings["window_s"]))
+        """Pass 2: residual spectra of every window of one record (Alg. 3 lines 3-9); the record is
+        also one stretch of the alarm evidence."""
+        freqs, amp = residual_spectra(self.model(), sig, self.settings["window_s"])
+        self.add_window_spectra(freqs, amp)
+        m, op = self.model(), operating_point(sig, self.profile)
+        point = cluster_point(sig, self.profile, m.form, m.extra_q, self.settings["prefilter_hz"])
+        y = feature_values(freqs, amp, self.profile, op["fe_hz"], self.features(), SEARCH_BINS)
+        self.add_stretch(y, point, op["load_pct"], [point], [op["load_pct"]], sig.n * sig.ts)
+
+    def add_stretch(self, window_y: np.ndarray, point, load_pct: float, hop_points, hop_loads,
+                    seconds: float) -> None:
+        """One stretch of healthy operation for the alarm evidence: its windows' feature values
+        (m, F), its cluster point and load, the single spans' points and loads, its length (s)."""
+        self.stretch_windows.append(np.atleast_2d(window_y))
+        self.stretch_cluster.append(np.asarray(point, dtype=float))
+        self.stretch_load.append(float(load_pct))
+        self.hop_cluster.extend(np.asarray(p, dtype=float) for p in hop_points)
+        self.hop_load.extend(float(x) for x in hop_loads)
+        self.stretch_s = seconds if not self.stretch_s else min(self.stretch_s, seconds)
 
     def add_window_spectra(self, freqs: np.ndarray, amp: np.ndarray) -> None:
         """Pass 2 with spectra (n_windows, bins) computed elsewhere (the streaming pipeline)."""
@@ -230,7 +266,17 @@ class BaselineBuilder:
                                 st["robust"]),
             operating_point=op, records=list(self.sources),
             settings={**st, "records": len(self.fits), "windows": len(self.spectra),
-                      "implausible_records": sum(f.reason != "ok" for f in self.fits)})
+                      "implausible_records": sum(f.reason != "ok" for f in self.fits)},
+            evidence=self.evidence())
+
+    def evidence(self) -> EvidenceStats | None:
+        """Healthy statistics of the alarm evidence, or None with fewer than 4 stretches."""
+        if len(self.stretch_windows) < 4:
+            return None
+        return EvidenceStats.fit(
+            self.features(), np.array([w.mean(axis=0) for w in self.stretch_windows]),
+            np.concatenate(self.stretch_windows), np.array(self.stretch_cluster), np.array(self.stretch_load),
+            np.array(self.hop_cluster), np.array(self.hop_load), self.stretch_s, self.profile, self.consecutive)
 
 
 def identify_baseline(records: list[Record], profile: DriveProfile, *, refine: bool = False, progress=None,

@@ -17,6 +17,7 @@ import numpy as np
 
 from agent.baseline import Baseline, Cluster, Thresholds
 from agent.errors import InputError
+from agent.evidence import EvidenceStats
 from agent.model import DQModel
 from agent.profile import parse_profile
 
@@ -44,6 +45,7 @@ def baseline_to_json(b: Baseline) -> dict:
         "cluster": {"points": _arr(cl.points), "centre": _arr(cl.centre), "cov": _arr(cl.cov),
                     "limit": cl.limit, "confidence": cl.confidence, "region": cl.region},
         "records": b.records, "settings": b.settings, "history": b.history,
+        **({"evidence": b.evidence.to_json()} if b.evidence is not None else {}),
     }
 
 
@@ -65,7 +67,8 @@ def baseline_from_json(doc: dict, source: str = "<model>") -> Baseline:
             cluster=Cluster(np.array(cl["points"]), np.array(cl["centre"]), np.array(cl["cov"]),
                             float(cl["limit"]), float(cl["confidence"]), cl["region"]),
             operating_point=doc["operating_point"], records=list(doc.get("records", [])),
-            settings=dict(doc.get("settings", {})), history=list(doc.get("history", [])))
+            settings=dict(doc.get("settings", {})), history=list(doc.get("history", [])),
+            evidence=EvidenceStats.from_json(doc["evidence"]) if "evidence" in doc else None)
     except InputError:
         raise
     except (KeyError, TypeError, ValueError) as err:

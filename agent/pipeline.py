@@ -35,10 +35,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agent.baseline import BaselineBuilder, residual_spectra
+from agent.baseline import SEARCH_BINS, BaselineBuilder, residual_spectra
 from agent.decision import STATES, decide
+from agent.evidence import AlarmConfig, AlarmLogic, feature_values
 from agent.frames import CLARKE, abc_to_dq
 from agent.identify import cluster_point, fit_torque, operating_point
+from agent.sanity import not_running
 from agent.library import ModelLibrary
 from agent.model import BASE_TERMS, Signals, input_power, regressors
 from agent.pll import PLL
@@ -62,9 +64,12 @@ class PipelineConfig:
     persist_hops: int = 1  #: consecutive decisions needed to raise a level
     alarm_hold_s: float = 10.0  #: a raised level drops only after this long below it, s
     stale_after_s: float = 3.0  #: no input for this long -> quality "stale", s
-    learn_windows: int = 30  #: spans (parameters) and windows (thresholds) to learn a baseline
+    learn_windows: int = 30  #: spans to learn the baseline's parameters (pass 1)
+    learn_stretches: int = 40  #: independent stretches to learn the thresholds and alarm statistics (pass 2)
+    learn_min_s: float = 1200.0  #: s of operation pass 2 covers at least (cold to hot: thermal drift)
     max_current_a: float = float("inf")  #: |i| at or above this is saturation -> bad input
     max_voltage_v: float = float("inf")
+    alarm: AlarmConfig = AlarmConfig()  #: the alarm logic (agent.evidence)
 
     def __post_init__(self):
         ratio = self.window_s / self.hop_s
@@ -95,6 +100,7 @@ class DriveMonitor:
         self._clock = 0  # samples since the monitor started (all streams): the hold's time base
         self._builder: BaselineBuilder | None = None
         self._learn_name = ""
+        self.alarms = AlarmLogic(config.alarm)
         self.reset_stream()
 
     # -- stream ---------------------------------------------------------------------------------
@@ -208,29 +214,44 @@ class DriveMonitor:
         return self._spectra[key]
 
     def _hop(self) -> DriveStatus | None:
+        """One assessment: samples -> signals -> operating point -> baseline -> residual -> evidence -> decision."""
         if self._filled < self.n_span:
             return None
         sig = self._signals(self.n_span)
         if sig is None:
-            return self._set(quality="bad_input")
+            return self._set(quality="bad_input", reason="NaN or saturated samples in the span")
         op = operating_point(sig, self.profile)
+        idle = not_running(sig, self.profile)
+        if idle is not None:
+            return self._set(quality="no_model", model="", state="normal", spectrum_state="normal",
+                             cluster_state="normal", fe_hz=op["fe_hz"], load_pct=op["load_pct"], peaks=[],
+                             reason=idle)
         if self._builder is not None:
             return self._learn(sig, op)
         name = self.library.select(op["fe_hz"], op["load_pct"], self.status.model or None)
         if name is None:
             return self._set(quality="no_model", model="", state="normal", spectrum_state="normal",
-                             cluster_state="normal", fe_hz=op["fe_hz"], load_pct=op["load_pct"], peaks=[])
+                             cluster_state="normal", fe_hz=op["fe_hz"], load_pct=op["load_pct"], peaks=[],
+                             reason="no baseline for this operating point")
         base = self.library.baselines[name]
+        if base.evidence is None:
+            return self._set(quality="no_model", model=name, state="normal", spectrum_state="normal",
+                             cluster_state="normal", fe_hz=op["fe_hz"], load_pct=op["load_pct"], peaks=[],
+                             reason=f"baseline {name} has no alarm statistics: learn it again")
         ends = [self._samples - j * self.n_win for j in range(self.config.span_windows - 1, -1, -1)]
         spectra = [self._window_spectrum(name, e) for e in ends]
         if any(s is None for s in spectra):
-            return self._set(quality="bad_input")
+            return self._set(quality="bad_input", reason="NaN or saturated samples in a window")
         point = np.array([self._ts_over_lq(name), fit_torque(sig, self.profile)[1]])
         freqs = base.thresholds.freqs_hz
-        d = decide(base, freqs, np.array(spectra), point, op, self.drive)
-        return self._set(quality="good", model=name, state=self._hold(d.state), spectrum_state=d.spectrum_state,
-                         cluster_state=d.cluster_state, fe_hz=op["fe_hz"], load_pct=op["load_pct"],
-                         peaks=d.peaks, cluster_distance2=d.cluster["distance2"])
+        y = feature_values(freqs, np.array(spectra), self.profile, op["fe_hz"], base.evidence.features, SEARCH_BINS)
+        v = self.alarms.step(base.evidence, self.profile, y.mean(axis=0), y[-1], point, op["load_pct"],
+                             op["fe_hz"], self.config.hop_s)
+        d = decide(base, freqs, np.array(spectra), point, op, self.drive)  # the paper's rule: peaks for display
+        return self._set(quality="good", model=name, state=self._hold(v.state), spectrum_state=v.spectrum_state,
+                         cluster_state=v.cluster_state, fe_hz=op["fe_hz"], load_pct=op["load_pct"],
+                         peaks=d.peaks, cluster_distance2=d.cluster["distance2"], reason=v.reason,
+                         evidence=v.evidence, settling=v.settling)
 
     def last_spectrum(self) -> tuple[str, np.ndarray, np.ndarray] | None:
         """(model, freqs_hz, amplitude) of the newest window's residual spectrum, for queries."""
@@ -281,45 +302,137 @@ class DriveMonitor:
             return raw
         return held
 
-    def _set(self, **changes) -> DriveStatus:
+    def _set(self, reason=None, evidence=None, settling=False, learn_progress_pct=None, **changes) -> DriveStatus:
+        """The new status; ``extra`` carries why (``reason``), the evidence trend per family
+        (CUSUM / threshold), whether a settling guard holds the decision, learning progress."""
         old = self.status
-        new = DriveStatus(**{**old.__dict__, **changes, "t": time.time(), "window": old.window + 1})
+        extra = {"reason": reason, "evidence": evidence if evidence is not None else old.extra.get("evidence", {}),
+                 "settling": settling}
+        if learn_progress_pct is not None:
+            extra["learn_progress_pct"] = learn_progress_pct
+        new = DriveStatus(**{**old.__dict__, **changes, "t": time.time(), "window": old.window + 1, "extra": extra})
         for key in ("state", "quality"):
             if getattr(new, key) != getattr(old, key):
                 self.on_event(key, {"from": getattr(old, key), "to": getattr(new, key), "model": new.model,
-                                    "fe_hz": new.fe_hz, "load_pct": new.load_pct, "peaks": new.peaks[:6]})
+                                    "fe_hz": new.fe_hz, "load_pct": new.load_pct, "peaks": new.peaks[:6],
+                                    "reason": reason, "evidence": extra["evidence"]})
         self.status = new
         return new
 
     # -- learning -------------------------------------------------------------------------------
-    def start_learning(self, name: str, **settings) -> None:
-        """Learn a baseline named ``name`` from the stream (see the module docstring)."""
+    def start_learning(self, name: str, replace: bool = False, **settings) -> None:
+        """Learn a baseline named ``name`` from the stream (see the module docstring); ``replace``
+        allows it to replace a baseline that already covers the operating point."""
         self._builder = BaselineBuilder(self.profile, window_s=self.config.window_s, **settings)
+        self._builder.consecutive = True
         self._learn_name = name
+        self._learn_replace = replace
         self._learn_mark = -(1 << 62)
-        self.on_event("learning", {"name": name, "phase": "parameters"})
+        self._learn_stretch: dict = {"y": [], "points": [], "loads": [], "seconds": 0.0}
+        self._learn_settle = 0.0
+        self._learn_last_op: tuple | None = None
+        self._learn_seconds = 0.0
+        self._learn_reported = -1
+        self.on_event("learning", {"name": name, "phase": "parameters", "progress_pct": 0.0})
 
     @property
     def learning(self) -> bool:
         return self._builder is not None
 
+    @property
+    def learn_progress_pct(self) -> float:
+        """Share of the learning done: pass 1 spans and pass 2 stretches and seconds, by time needed."""
+        if self._builder is None:
+            return 100.0
+        c, b = self.config, self._builder
+        span_s = self.n_span / self.rate
+        need_1 = c.learn_windows * span_s
+        stretch_s = max(c.alarm.stretch_s, 0.0)
+        need_2 = max(c.learn_stretches * stretch_s, c.learn_min_s)
+        done_2 = min(len(b.stretch_windows) * stretch_s, self._learn_seconds) if c.learn_stretches else 0.0
+        return round(100.0 * (min(len(b.fits), c.learn_windows) * span_s + done_2) / (need_1 + need_2), 1)
+
+    def _refuse(self, why: str, op: dict) -> DriveStatus:
+        self._builder = None
+        self.on_event("learning_refused", {"name": self._learn_name, "reason": why})
+        return self._set(quality="no_model", state="normal", spectrum_state="normal", cluster_state="normal",
+                         fe_hz=op["fe_hz"], load_pct=op["load_pct"], peaks=[], reason=f"learning refused: {why}")
+
     def _learn(self, sig: Signals, op: dict) -> DriveStatus:
-        b, n = self._builder, self.config.learn_windows
-        if len(b.fits) < n:
+        """Pass 1: ``learn_windows`` non-overlapping spans fit the parameters. Pass 2: stretches of
+        ``alarm.stretch_s`` (a settling guard after operating-point changes) give the thresholds
+        (non-overlapping windows) and the alarm statistics, until ``learn_stretches`` stretches
+        and ``learn_min_s`` seconds; then the checks and the write."""
+        b, c = self._builder, self.config
+        hop_s = c.hop_s
+        if len(b.fits) < c.learn_windows:
             if self._samples - self._learn_mark >= self.n_span:  # non-overlapping spans
                 self._learn_mark = self._samples
                 b.add_fit(sig, f"{self.drive}@{self._samples}")
-                if len(b.fits) == n:
-                    self.on_event("learning", {"name": self._learn_name, "phase": "thresholds"})
-        elif self._samples - self._learn_mark >= self.n_win:  # non-overlapping windows
+                if len(b.fits) == c.learn_windows:
+                    self._learn_mark = -(1 << 62)
+                    self.on_event("learning", {"name": self._learn_name, "phase": "thresholds",
+                                               "progress_pct": self.learn_progress_pct})
+            return self._learning_status(op)
+        key = (op["fe_hz"], op["load_pct"])
+        if self._learn_last_op is not None and (abs(key[0] - self._learn_last_op[0]) > c.alarm.settle_fe_hz
+                                                or abs(key[1] - self._learn_last_op[1]) > c.alarm.settle_load_pct):
+            self._learn_settle = c.alarm.settle_s
+            self._learn_stretch = {"y": [], "points": [], "loads": [], "seconds": 0.0}
+        self._learn_last_op = key
+        if self._learn_settle > 0:
+            self._learn_settle -= hop_s
+            return self._learning_status(op)
+        model = b.model()
+        last = sig.slice(self.n_span - self.n_win, self.n_span)
+        freqs, amp = residual_spectra(model, last, c.window_s)
+        if self._samples - self._learn_mark >= self.n_win:  # thresholds: non-overlapping windows
             self._learn_mark = self._samples
-            b.add_spectra(sig.slice(self.n_span - self.n_win, self.n_span))
-            if len(b.spectra) >= n:
-                baseline = b.build()
-                path = self.library.add(self._learn_name, baseline)
-                self._builder = None
-                self.on_event("learned", {"name": self._learn_name, "path": str(path),
-                                          "operating_point": baseline.operating_point})
-        return self._set(quality="learning" if self._builder else "good", state="normal",
-                         spectrum_state="normal", cluster_state="normal", fe_hz=op["fe_hz"],
-                         load_pct=op["load_pct"], peaks=[])
+            b.add_window_spectra(freqs, amp)
+        st = self._learn_stretch
+        st["y"].append(feature_values(freqs, amp, self.profile, op["fe_hz"], b.features(), SEARCH_BINS)[0])
+        st["points"].append(cluster_point(sig, self.profile, model.form, model.extra_q,
+                                          b.settings["prefilter_hz"]))
+        st["loads"].append(op["load_pct"])
+        st["seconds"] += hop_s
+        self._learn_seconds += hop_s
+        if st["seconds"] >= c.alarm.stretch_s - 1e-9:
+            b.add_stretch(np.array(st["y"]), np.mean(st["points"], axis=0), float(np.mean(st["loads"])),
+                          st["points"], st["loads"], st["seconds"])
+            self._learn_stretch = {"y": [], "points": [], "loads": [], "seconds": 0.0}
+            loads = np.array(b.stretch_load)
+            fes = np.array([f.operating_point["fe_hz"] for f in b.fits])
+            spread = float(np.ptp(loads))
+            if spread > self.library.schedule.load_tol_pct:
+                return self._refuse(f"load spread {spread:.1f} %-points over the stretches exceeds the "
+                                    f"operating-point tolerance {self.library.schedule.load_tol_pct:g}", op)
+            if abs(op["fe_hz"] - float(np.median(fes))) > self.library.schedule.fe_tol_hz:
+                return self._refuse(f"speed moved: fe {op['fe_hz']:.2f} Hz against {np.median(fes):.2f} Hz in "
+                                    f"pass 1 (tolerance {self.library.schedule.fe_tol_hz:g} Hz)", op)
+            if len(b.stretch_windows) >= c.learn_stretches and self._learn_seconds >= c.learn_min_s:
+                return self._finish_learning(op)
+        return self._learning_status(op)
+
+    def _learning_status(self, op: dict) -> DriveStatus:
+        pct = self.learn_progress_pct
+        if int(pct // 10) != self._learn_reported:  # journal every 10 %
+            self._learn_reported = int(pct // 10)
+            self.on_event("learning", {"name": self._learn_name, "progress_pct": pct})
+        return self._set(quality="learning", state="normal", spectrum_state="normal", cluster_state="normal",
+                         fe_hz=op["fe_hz"], load_pct=op["load_pct"], peaks=[], learn_progress_pct=pct,
+                         reason=f"learning {self._learn_name}: {pct:.0f} %")
+
+    def _finish_learning(self, op: dict) -> DriveStatus:
+        baseline = self._builder.build()
+        bop = baseline.operating_point
+        covering = self.library.select(bop["fe_hz"], bop["load_pct"])
+        if covering is not None and not (self._learn_replace and covering == self._learn_name):
+            return self._refuse(f"baseline {covering} already covers fe {bop['fe_hz']:.2f} Hz, load "
+                                f"{bop['load_pct']:.1f} % (replace it explicitly)", op)
+        path = self.library.add(self._learn_name, baseline)
+        self._builder = None
+        self.on_event("learned", {"name": self._learn_name, "path": str(path), "operating_point": bop,
+                                  "stretches": baseline.evidence.n if baseline.evidence else 0})
+        return self._set(quality="good", state="normal", spectrum_state="normal", cluster_state="normal",
+                         fe_hz=op["fe_hz"], load_pct=op["load_pct"], peaks=[], learn_progress_pct=100.0,
+                         reason=f"learned {self._learn_name}")

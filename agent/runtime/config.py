@@ -164,8 +164,14 @@ class PipelineCfg:
     persist_hops: int = _opt(1, ge=1)  #: consecutive assessments needed to raise an alarm level
     alarm_hold_s: float = _opt(10.0, ge=0)  #: a raised state is held this long before it may fall
     stale_after_s: float = _opt(3.0, gt=0)  #: no input for this long -> quality "stale"
-    learn_windows: int = _opt(30, ge=4)  #: spans (parameters) and windows (thresholds) of a new baseline
-    auto_learn: bool = True  #: learn a baseline when none fits the operating point
+    learn_windows: int = _opt(30, ge=4, le=10000)  #: spans fitting a new baseline's parameters (pass 1)
+    learn_stretches: int = _opt(40, ge=4, le=100000)  #: independent stretches of its alarm statistics (pass 2)
+    learn_min_s: float = _opt(1200.0, ge=0, le=30 * 86400)  #: s of operation pass 2 covers at least
+    stretch_s: float = _opt(30.0, gt=0, le=3600)  #: s of operation per step of the slow-wear evidence
+    settle_s: float = _opt(10.0, ge=0, le=3600)  #: s of held decision after an operating-point change
+    false_alarms_per_month: float = _opt(0.1, gt=0, le=100)  #: design budget of the slow-wear path per drive
+    gross_z: float = _opt(8.0, gt=2, le=1000)  #: prediction sds above healthy for an immediate warning
+    auto_learn: bool = True  #: first commissioning: learn once when the drive has no baseline at all
     schedule_fe_tol_hz: float = _opt(2.0, gt=0)  #: a baseline applies within this fe distance
     schedule_load_tol_pct: float = _opt(5.0, gt=0)  #: ... and this load distance (input power, % of rated)
     schedule_hysteresis: float = _opt(0.2, ge=0, le=1)  #: extra fraction of the tolerance to leave a baseline

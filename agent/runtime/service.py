@@ -23,6 +23,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+from agent.evidence import AlarmConfig
 from agent.library import ModelLibrary, Schedule
 from agent.pipeline import DriveMonitor, PipelineConfig
 from agent.runtime import sdnotify
@@ -79,8 +80,11 @@ def build_source(drive, rate_hz: float, span_s: float | None = None) -> Source:
 
 def pipeline_config(cfg: Config) -> PipelineConfig:
     p = cfg.pipeline
+    alarm = AlarmConfig(stretch_s=p.stretch_s, settle_s=p.settle_s, false_alarms_per_month=p.false_alarms_per_month,
+                        gross_z=p.gross_z)
     return PipelineConfig(window_s=p.window_s, hop_s=p.hop_s, persist_hops=p.persist_hops,
-                          alarm_hold_s=p.alarm_hold_s, stale_after_s=p.stale_after_s, learn_windows=p.learn_windows)
+                          alarm_hold_s=p.alarm_hold_s, stale_after_s=p.stale_after_s, learn_windows=p.learn_windows,
+                          learn_stretches=p.learn_stretches, learn_min_s=p.learn_min_s, alarm=alarm)
 
 
 @dataclass
@@ -92,6 +96,7 @@ class DriveRuntime:
     dropped: int = 0
     gaps: int = 0
     first_open: threading.Event = field(default_factory=threading.Event)
+    auto_learned: bool = False
     reader: threading.Thread | None = None
 
 
@@ -136,11 +141,11 @@ class Service:
 
     # -- events and queries ---------------------------------------------------------------------
     def _event(self, drive: str, kind: str, detail: dict) -> None:
-        if kind in ("learning", "learned"):
+        if kind in ("learning", "learned", "learning_refused"):
             self.journal.record("learning", drive, detail={"event": kind, **detail})
         elif kind == "gap":  # counted, not journalled: snapshot sources make one per snapshot
             self.drives[drive].gaps += 1
-        if kind in ("state", "quality", "learning", "learned"):
+        if kind in ("state", "quality", "learning", "learned", "learning_refused"):
             self.on_transition(drive, kind, detail)
 
     def _baseline(self, drive: str):
@@ -223,9 +228,21 @@ class Service:
                 continue
             for status in statuses:
                 self._publish(status)
-                if status.quality == "no_model" and self.cfg.pipeline.auto_learn and not d.monitor.learning:
+                if self._auto_learn_due(d, status):
+                    d.auto_learned = True
                     d.monitor.start_learning(f"{d.name}_{status.fe_hz:.0f}hz_{status.load_pct:.0f}pct")
         return busy
+
+    def _auto_learn_due(self, d: "DriveRuntime", status: DriveStatus) -> bool:
+        """First commissioning only: with ``auto_learn``, a running drive with no baseline of its own
+        in the library starts learning once per run. It never learns again by itself (a second
+        operating point, a relearn after refusal: ``pmsm-agent learn`` or the PLC's command), so it
+        cannot learn from a fault that develops later."""
+        if not self.cfg.pipeline.auto_learn or d.auto_learned or d.monitor.learning or status.quality != "no_model":
+            return False
+        if str(status.extra.get("reason") or "").startswith("not running"):
+            return False
+        return not any(name.startswith(f"{d.name}_") for name in self.library.baselines)
 
     def _commands(self) -> None:
         if self.plc is None:

@@ -1,0 +1,363 @@
+"""Alarm evidence: from a stream of strongly correlated spectra to few decisions an operator trusts.
+
+The paper's thresholds (TH2/TH3 per record, Table 4) are the evidence; this module is the alarm
+logic the running agent puts on top of it (docs/method.md, "Alarms"). Measured on healthy data,
+the magnitude at a fault line varies little between the windows of one stretch of operation
+(log-magnitude sd ~0.02 at the main gear lines) and much more between stretches (~0.12: mesh
+ripple, temperature, lubricant film), so windows are not independent tests.
+
+* **Features.** One piece of evidence per sideband *pair* fe -/+ k f of a family: the mean of
+  the two lines' log-magnitudes. Pairs that land on the same lines (gear_driven k=2 and
+  gear_driving k=1 at ratio 2, a chain order on a sprocket line) are one feature, reported under
+  every family that reaches it.
+* **Standardisation** over independent healthy *stretches* (``stretch_s`` of operation each, or
+  one record each when learned offline), widened for what few stretches can tell: the mean is
+  taken at its one-sided 95 % upper bound, the sd at its 95 % upper bound (chi-square), and
+  inflated by sqrt((1 + rho) / (1 - rho)) for the lag-1 correlation rho of consecutive stretches.
+* **Slow wear path:** one-sided CUSUM per feature over stretches, S = max(0, S + min(z, z_cap) - k),
+  caution at S >= h; a second CUSUM with reference ``warn_k`` (a shift beyond the paper's TH3)
+  gives warning. The cap bounds what one stretch can add (z_cap - k), so no single outlier trips
+  it. h is set from the false-alarm budget with Siegmund's ARL approximation
+  (:func:`cusum_threshold`).
+* **Gross path:** a feature whose span value is ``gross_z`` prediction sds above the healthy mean
+  (per-window spread), or a cluster point as far out, is a warning in the current hop.
+* **Parameter cluster** (Ts/Lq, B_GT), Alg. 4, made load-invariant: B_GT is the mean shaft torque
+  over speed, so it moves with load; it is compared after removing the load's physical share,
+  dB_GT/dload = P_rated / (100 omega_m^2) per %-point. A friction increase that shows up only as
+  more input power is then indistinguishable from load (documented limitation).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from statistics import NormalDist
+
+import numpy as np
+
+from agent.frequencies import base_frequencies
+from agent.spectrum import peak_near
+
+K_MAX = 3  #: sideband orders per family
+_NORMAL = NormalDist()
+MONTH_S = 30 * 86400.0
+STATES = ("normal", "caution", "warning")
+
+
+# --- features ----------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Feature:
+    """One sideband pair fe -/+ k f of ``family``; ``shared``: other (family, k) reaching the same lines."""
+
+    family: str
+    k: int
+    shared: tuple[tuple[str, int], ...] = ()
+
+    @property
+    def name(self) -> str:
+        return f"{self.family} k={self.k}"
+
+    @property
+    def families(self) -> tuple[str, ...]:
+        return tuple(dict.fromkeys((self.family,) + tuple(f for f, _ in self.shared)))
+
+    def freqs_hz(self, profile, fe_hz: float) -> tuple[float, float]:
+        f = base_frequencies(profile, fe_hz)[self.family]
+        return fe_hz - self.k * f, fe_hz + self.k * f
+
+
+def make_features(profile, fe_hz: float, resolution_hz: float, f_max_hz: float) -> list[Feature]:
+    """The unique sideband pairs at ``fe_hz``: pairs whose lines both lie within ``resolution_hz``
+    of another pair's are merged into it (one piece of evidence)."""
+    out: list[tuple[Feature, tuple[float, float]]] = []
+    for family, f in base_frequencies(profile, fe_hz).items():
+        for k in range(1, K_MAX + 1):
+            lo, hi = fe_hz - k * f, fe_hz + k * f
+            if lo <= 0 or hi > f_max_hz:
+                continue
+            for j, (feat, (flo, fhi)) in enumerate(out):
+                if abs(flo - lo) <= resolution_hz and abs(fhi - hi) <= resolution_hz:
+                    out[j] = (Feature(feat.family, feat.k, feat.shared + ((family, k),)), (flo, fhi))
+                    break
+            else:
+                out.append((Feature(family, k), (lo, hi)))
+    return [feat for feat, _ in out]
+
+
+def feature_values(freqs: np.ndarray, amp: np.ndarray, profile, fe_hz: float, features: list[Feature],
+                   search_bins: int = 1) -> np.ndarray:
+    """(n_windows, n_features): per window, the mean log-magnitude (ln A) of each pair's two lines,
+    each read as the largest bin within ``search_bins`` of it (as the paper's thresholds are)."""
+    amp = np.atleast_2d(amp)
+    targets = np.array([f for feat in features for f in feat.freqs_hz(profile, fe_hz)])
+    _, _, mag = peak_near(freqs, amp, targets, search_bins)
+    logs = np.log(np.maximum(np.asarray(mag, dtype=float), 1e-15)).reshape(amp.shape[0], len(features), 2)
+    return logs.mean(axis=2)
+
+
+# --- statistics ----------------------------------------------------------------------------------
+
+def chi2_lower(q: float, dof: int) -> float:
+    """Chi-square quantile (Wilson-Hilferty; within 1 % for dof >= 5)."""
+    z = _NORMAL.inv_cdf(q)
+    return dof * (1.0 - 2.0 / (9 * dof) + z * math.sqrt(2.0 / (9 * dof))) ** 3
+
+
+def cusum_arl(h: float, k: float, shift: float = 0.0) -> float:
+    """Siegmund's approximation of the average run length (stretches) of a one-sided CUSUM with
+    unit-variance normal increments of mean ``shift``, reference ``k`` and threshold ``h``."""
+    d, b = shift - k, h + 1.166
+    if abs(d) < 1e-9:
+        return b * b
+    return (math.exp(-2.0 * d * b) + 2.0 * d * b - 1.0) / (2.0 * d * d)
+
+
+def cusum_threshold(arl: float, k: float) -> float:
+    """Smallest h whose in-control ARL (:func:`cusum_arl` with no shift) reaches ``arl`` (bisection)."""
+    lo, hi = 0.0, 100.0
+    for _ in range(100):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if cusum_arl(mid, k) < arl else (lo, mid)
+    return hi
+
+
+@dataclass
+class EvidenceStats:
+    """Healthy statistics of the features and the cluster, learned over independent stretches."""
+
+    features: list[Feature]
+    mean: np.ndarray  #: (F,) stretch mean of each feature (ln A)
+    sd: np.ndarray  #: (F,) sd between stretches
+    window_sd: np.ndarray  #: (F,) sd of single spans/windows about the mean (gross path)
+    rho: float  #: lag-1 correlation of consecutive stretches (0 when stretches are separate records)
+    n: int  #: independent stretches
+    stretch_s: float  #: s of operation per stretch
+    load_pct: float  #: load at which the cluster is centred, %
+    b_gt_per_pct: float  #: physical slope dB_GT/dload, N m s/rad per %-point
+    cluster_mean: np.ndarray  #: (2,) load-adjusted (Ts/Lq, B_GT)
+    cluster_cov: np.ndarray  #: (2, 2) between stretches
+    cluster_hop_cov: np.ndarray  #: (2, 2) of single spans (gross path)
+
+    @classmethod
+    def fit(cls, features: list[Feature], stretch_y: np.ndarray, window_y: np.ndarray, stretch_cluster: np.ndarray,
+            stretch_load: np.ndarray, hop_cluster: np.ndarray, hop_load: np.ndarray, stretch_s: float,
+            profile, consecutive: bool) -> "EvidenceStats":
+        """From ``stretch_y`` (n, F) stretch means, ``window_y`` (m, F) single windows, the cluster
+        points (n, 2) and loads (n,) of the stretches and of single spans; ``consecutive``: the
+        stretches follow each other in one stream (their lag-1 correlation is estimated)."""
+        n = stretch_y.shape[0]
+        if n < 4:
+            raise ValueError(f"need at least 4 independent stretches, got {n}")
+        mean, sd = stretch_y.mean(axis=0), stretch_y.std(axis=0, ddof=1)
+        window_sd = np.sqrt(np.mean((window_y - mean) ** 2, axis=0))
+        rho = 0.0
+        if consecutive and n >= 8:
+            c = stretch_y - mean
+            rho = float(np.clip(np.mean(np.sum(c[1:] * c[:-1], 0) / np.maximum(np.sum(c * c, 0), 1e-30)), 0.0, 0.9))
+        omega_m = 2 * math.pi * profile.motor.rated_speed_rpm / 60.0
+        slope = profile.motor.rated_power_w / 100.0 / omega_m ** 2
+        load0 = float(np.median(stretch_load))
+
+        def adjust(points, loads):
+            p = np.array(points, dtype=float).copy()
+            p[:, 1] -= slope * (np.asarray(loads) - load0)
+            return p
+
+        sc, hc = adjust(stretch_cluster, stretch_load), adjust(hop_cluster, hop_load)
+        c_mean = sc.mean(axis=0)
+        floor = np.eye(2) * 1e-12 * (1.0 + np.abs(c_mean) ** 2)
+        c_cov = np.cov(sc, rowvar=False) + floor
+        h_cov = ((hc - c_mean).T @ (hc - c_mean)) / max(len(hc), 1) + floor
+        return cls(features, mean, np.maximum(sd, 1e-6), np.maximum(window_sd, 1e-6), rho, n, float(stretch_s),
+                   load0, slope, c_mean, c_cov, h_cov)
+
+    # -- standardisation ------------------------------------------------------------------------
+    @property
+    def scale(self) -> np.ndarray:
+        """Conservative sd for the CUSUM: upper 95 % bound of sd, inflated for lag-1 correlation."""
+        c_sigma = math.sqrt((self.n - 1) / chi2_lower(0.05, self.n - 1))
+        return self.sd * c_sigma * math.sqrt((1 + self.rho) / (1 - self.rho))
+
+    def stretch_z(self, y: np.ndarray) -> np.ndarray:
+        """z of stretch means: shift above the mean's one-sided 95 % upper bound, in :attr:`scale`."""
+        upper = self.mean + 1.645 * self.sd / math.sqrt(self.n)
+        return (np.asarray(y) - upper) / self.scale
+
+    def span_z(self, y: np.ndarray) -> np.ndarray:
+        """z of a single span: in prediction sds of single windows, sd sqrt(1 + 1/n) wider."""
+        return (np.asarray(y) - self.mean) / (self.window_sd * math.sqrt(1 + 1 / self.n))
+
+    def cluster_z(self, point, load_pct: float, hop: bool = False) -> float:
+        """Normal score of the load-adjusted cluster point's squared Mahalanobis distance
+        (chi-square, 2 dof, widened by 1 + 1/n for the estimated centre)."""
+        p = np.asarray(point, dtype=float).copy()
+        p[1] -= self.b_gt_per_pct * (load_pct - self.load_pct)
+        d = p - self.cluster_mean
+        d2 = float(d @ np.linalg.solve(self.cluster_hop_cov if hop else self.cluster_cov, d)) / (1 + 1 / self.n)
+        tail = math.exp(-0.5 * min(d2, 1400.0))
+        return 40.0 if tail <= 0.0 else -_NORMAL.inv_cdf(min(max(tail, 1e-300), 1 - 1e-16))
+
+    # -- model file -----------------------------------------------------------------------------
+    def to_json(self) -> dict:
+        return {"features": [{"family": f.family, "k": f.k, "shared": [list(s) for s in f.shared]}
+                             for f in self.features],
+                "mean": self.mean.tolist(), "sd": self.sd.tolist(), "window_sd": self.window_sd.tolist(),
+                "rho": self.rho, "n": self.n, "stretch_s": self.stretch_s, "load_pct": self.load_pct,
+                "b_gt_per_pct": self.b_gt_per_pct, "cluster_mean": self.cluster_mean.tolist(),
+                "cluster_cov": self.cluster_cov.tolist(), "cluster_hop_cov": self.cluster_hop_cov.tolist()}
+
+    @classmethod
+    def from_json(cls, d: dict) -> "EvidenceStats":
+        feats = [Feature(f["family"], int(f["k"]), tuple((s[0], int(s[1])) for s in f["shared"])) for f in d["features"]]
+        arr = lambda key: np.array(d[key], dtype=float)  # noqa: E731
+        return cls(feats, arr("mean"), arr("sd"), arr("window_sd"), float(d["rho"]), int(d["n"]),
+                   float(d["stretch_s"]), float(d["load_pct"]), float(d["b_gt_per_pct"]), arr("cluster_mean"),
+                   arr("cluster_cov"), arr("cluster_hop_cov"))
+
+
+# --- the streaming decision ------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class AlarmConfig:
+    """Tuning of the streaming alarm logic (docs/method.md explains each value and its evidence)."""
+
+    stretch_s: float = 30.0  #: s; at least this much operation per CUSUM step (longer if the baseline's is)
+    cusum_k: float = 0.5  #: reference shift, scaled sds: caution path
+    warn_k: float = 3.0  #: reference shift of the warning path (beyond the paper's TH3)
+    z_cap: float = 4.0  #: a stretch adds at most z_cap - k to a CUSUM (one outlier cannot trip it)
+    false_alarms_per_month: float = 0.1  #: design budget of the slow path per drive (Siegmund ARL)
+    gross_z: float = 8.0  #: prediction sds above healthy for a warning in the current hop
+    settle_s: float = 10.0  #: s of held decision after an operating-point change
+    settle_load_pct: float = 1.0  #: load change between hops (%-points) that starts settling
+    settle_fe_hz: float = 0.2  #: fe change between hops (Hz) that starts settling
+
+    def threshold(self, n_tests: int, stretch_s: float) -> float:
+        """CUSUM threshold h: in-control ARL of every test together >= one month / budget."""
+        arl = MONTH_S / stretch_s * n_tests / self.false_alarms_per_month
+        return cusum_threshold(arl, self.cusum_k)
+
+
+@dataclass
+class Verdict:
+    """One hop's decision and why."""
+
+    state: str
+    spectrum_state: str
+    cluster_state: str
+    evidence: dict  #: family -> max CUSUM / h over its features (>= 1: caution)
+    reason: dict | None = None  #: what drives the state (path, feature, family, z, threshold, evidence)
+    settling: bool = False
+    stretch_closed: bool = False
+
+
+class _Stretch:
+    """Running sums over the hops of the current stretch (fixed memory)."""
+
+    def __init__(self):
+        self.y, self.cluster, self.load, self.hops, self.seconds = 0.0, 0.0, 0.0, 0, 0.0
+
+    def add(self, y, point, load_pct: float, hop_s: float) -> None:
+        self.y = self.y + np.asarray(y, dtype=float)
+        self.cluster = self.cluster + np.asarray(point, dtype=float)
+        self.load += load_pct
+        self.hops += 1
+        self.seconds += hop_s
+
+
+class AlarmLogic:
+    """Per drive: accumulates stretches, keeps the CUSUMs, returns a :class:`Verdict` per hop.
+    CUSUM state is kept per feature name across baselines (the transmission does not change when
+    the scheduled model does)."""
+
+    def __init__(self, config: AlarmConfig = AlarmConfig()):
+        self.config = config
+        self.s_caution: dict[str, float] = {}
+        self.s_warning: dict[str, float] = {}
+        self._stretch = _Stretch()
+        self._settle_left = 0.0
+        self._last_op: tuple[float, float] | None = None
+        self._last: Verdict = Verdict("normal", "normal", "normal", {})
+
+    def reset(self) -> None:
+        """Forget accumulated evidence (e.g. after maintenance or an acknowledged repair)."""
+        self.__init__(self.config)
+
+    def _tests(self, stats: EvidenceStats) -> tuple[list[str], float]:
+        names = [f.name for f in stats.features] + ["cluster"]
+        stretch_s = max(self.config.stretch_s, stats.stretch_s)
+        return names, self.config.threshold(len(names), stretch_s)
+
+    def step(self, stats: EvidenceStats, profile, span_y: np.ndarray, window_y: np.ndarray, cluster_point, load_pct: float,
+             fe_hz: float, hop_s: float) -> Verdict:
+        """One hop: ``span_y`` (F,) the span's feature values (mean of its windows), ``window_y`` (F,)
+        the newest window's, the span's cluster point and operating point."""
+        cfg = self.config
+        op = (fe_hz, load_pct)
+        if self._last_op is not None and (abs(op[0] - self._last_op[0]) > cfg.settle_fe_hz
+                                          or abs(op[1] - self._last_op[1]) > cfg.settle_load_pct):
+            self._settle_left = cfg.settle_s
+            self._stretch = _Stretch()  # a stretch never mixes operating points
+        self._last_op = op
+        if self._settle_left > 0:
+            self._settle_left -= hop_s
+            return Verdict(self._last.state, self._last.spectrum_state, self._last.cluster_state,
+                           self._last.evidence, self._last.reason, settling=True)
+        names, h = self._tests(stats)
+        stretch_s = max(cfg.stretch_s, stats.stretch_s)
+
+        # gross path: this hop alone
+        gross = None
+        z_span = stats.span_z(span_y)
+        j = int(np.argmax(z_span))
+        if z_span[j] >= cfg.gross_z:
+            feat = stats.features[j]
+            gross = {"path": "gross", "feature": feat.name, "families": list(feat.families),
+                     "freqs_hz": [round(x, 2) for x in feat.freqs_hz(profile, fe_hz)],
+                     "z": round(float(z_span[j]), 2), "threshold": cfg.gross_z}
+        zc_hop = stats.cluster_z(cluster_point, load_pct, hop=True)
+        cluster_gross = zc_hop >= cfg.gross_z
+        if cluster_gross and gross is None:
+            gross = {"path": "gross", "feature": "cluster", "families": ["cluster"], "z": round(zc_hop, 2),
+                     "threshold": cfg.gross_z}
+
+        # slow path: a CUSUM step per completed stretch
+        st = self._stretch
+        st.add(window_y, cluster_point, load_pct, hop_s)
+        closed = st.seconds >= stretch_s - 1e-9
+        if closed:
+            z = np.append(stats.stretch_z(st.y / st.hops), stats.cluster_z(st.cluster / st.hops, st.load / st.hops))
+            for name, zi in zip(names, z):
+                self.s_caution[name] = min(2 * h, max(0.0, self.s_caution.get(name, 0.0) + min(zi, cfg.z_cap) - cfg.cusum_k))
+                self.s_warning[name] = min(2 * h, max(0.0, self.s_warning.get(name, 0.0)
+                                                      + min(zi, cfg.warn_k + cfg.z_cap) - cfg.warn_k))
+            self._stretch = _Stretch()
+
+        # levels per source (spectrum features / cluster) and the reason
+        def level(name):
+            return 2 if self.s_warning.get(name, 0.0) >= h else 1 if self.s_caution.get(name, 0.0) >= h else 0
+        spec_levels = {f.name: level(f.name) for f in stats.features}
+        spec = max(spec_levels.values(), default=0)
+        clus = level("cluster")
+        if gross is not None:
+            if gross["feature"] == "cluster":
+                clus = 2
+            else:
+                spec = 2
+        evidence = {}
+        for f in stats.features:
+            for fam in f.families:
+                evidence[fam] = round(max(evidence.get(fam, 0.0), self.s_caution.get(f.name, 0.0) / h), 3)
+        evidence["cluster"] = round(self.s_caution.get("cluster", 0.0) / h, 3)
+        reason = gross
+        if reason is None and max(spec, clus) > 0:
+            name = max(names, key=lambda n: (level(n), self.s_caution.get(n, 0.0)))
+            feat = next((f for f in stats.features if f.name == name), None)
+            reason = {"path": "cusum", "feature": name, "families": list(feat.families) if feat else ["cluster"],
+                      "evidence": round(self.s_caution[name], 2), "threshold": round(h, 2),
+                      "warning_evidence": round(self.s_warning.get(name, 0.0), 2)}
+            if feat is not None:
+                reason["freqs_hz"] = [round(x, 2) for x in feat.freqs_hz(profile, fe_hz)]
+        self._last = Verdict(STATES[max(spec, clus)], STATES[spec], STATES[clus], evidence, reason,
+                             stretch_closed=closed)
+        return self._last
