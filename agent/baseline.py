@@ -189,8 +189,6 @@ class BaselineBuilder:
         self.stretch_windows: list[np.ndarray] = []
         self.stretch_cluster: list[np.ndarray] = []
         self.stretch_load: list[float] = []
-        self.hop_cluster: list[np.ndarray] = []
-        self.hop_load: list[float] = []
         self.stretch_s = 0.0
         self.consecutive = False  #: stretches follow each other in one stream (streaming learning)
 
@@ -234,17 +232,14 @@ class BaselineBuilder:
         m, op = self.model(), operating_point(sig, self.profile)
         point = cluster_point(sig, self.profile, m.form, m.extra_q, self.settings["prefilter_hz"])
         y = feature_values(freqs, amp, self.profile, op["fe_hz"], self.features(), SEARCH_BINS)
-        self.add_stretch(y, point, op["load_pct"], [point], [op["load_pct"]], sig.n * sig.ts)
+        self.add_stretch(y, point, op["load_pct"], sig.n * sig.ts)
 
-    def add_stretch(self, window_y: np.ndarray, point, load_pct: float, hop_points, hop_loads,
-                    seconds: float) -> None:
+    def add_stretch(self, window_y: np.ndarray, point, load_pct: float, seconds: float) -> None:
         """One stretch of healthy operation for the alarm evidence: its windows' feature values
-        (m, F), its cluster point and load, the single spans' points and loads, its length (s)."""
+        (m, F), its mean cluster point and load, its length (s)."""
         self.stretch_windows.append(np.atleast_2d(window_y))
         self.stretch_cluster.append(np.asarray(point, dtype=float))
         self.stretch_load.append(float(load_pct))
-        self.hop_cluster.extend(np.asarray(p, dtype=float) for p in hop_points)
-        self.hop_load.extend(float(x) for x in hop_loads)
         self.stretch_s = seconds if not self.stretch_s else min(self.stretch_s, seconds)
 
     def add_window_spectra(self, freqs: np.ndarray, amp: np.ndarray) -> None:
@@ -276,7 +271,7 @@ class BaselineBuilder:
         return EvidenceStats.fit(
             self.features(), np.array([w.mean(axis=0) for w in self.stretch_windows]),
             np.concatenate(self.stretch_windows), np.array(self.stretch_cluster), np.array(self.stretch_load),
-            np.array(self.hop_cluster), np.array(self.hop_load), self.stretch_s, self.profile, self.consecutive)
+            self.stretch_s, self.profile, self.consecutive)
 
 
 def identify_baseline(records: list[Record], profile: DriveProfile, *, refine: bool = False, progress=None,

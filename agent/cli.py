@@ -23,7 +23,7 @@ log = logging.getLogger("pmsm-agent")
 
 #: Modules that add subcommands: each has ``add_commands(subparsers, common_parent)`` whose
 #: handlers take the parsed args and raise ``InputError`` for user errors.
-EXTENSIONS: tuple[str, ...] = ("agent.runtime.cli", "agent.workbench.cli")
+EXTENSIONS: tuple[str, ...] = ("agent.runtime.cli", "agent.runtime.commissioning", "agent.workbench.cli")
 
 
 # --- helpers --------------------------------------------------------------------------------

@@ -19,8 +19,10 @@ ripple, temperature, lubricant film), so windows are not independent tests.
   gives warning. The cap bounds what one stretch can add (z_cap - k), so no single outlier trips
   it. h is set from the false-alarm budget with Siegmund's ARL approximation
   (:func:`cusum_threshold`).
-* **Gross path:** a feature whose span value is ``gross_z`` prediction sds above the healthy mean
-  (per-window spread), or a cluster point as far out, is a warning in the current hop.
+* **Gross path:** a feature whose newest window is ``gross_z`` prediction sds above the healthy
+  mean (single-window spread) is a warning in the current hop: within one window plus one hop of
+  a gross fault's onset. The cluster's gross test reads whole stretches (a 4 s span's cluster point
+  is too noisy: measured, docs/method.md).
 * **Parameter cluster** (Ts/Lq, B_GT), Alg. 4, made load-invariant: B_GT is the mean shaft torque
   over speed, so it moves with load; it is compared after removing the load's physical share,
   dB_GT/dload = P_rated / (100 omega_m^2) per %-point. A friction increase that shows up only as
@@ -137,15 +139,13 @@ class EvidenceStats:
     b_gt_per_pct: float  #: physical slope dB_GT/dload, N m s/rad per %-point
     cluster_mean: np.ndarray  #: (2,) load-adjusted (Ts/Lq, B_GT)
     cluster_cov: np.ndarray  #: (2, 2) between stretches
-    cluster_hop_cov: np.ndarray  #: (2, 2) of single spans (gross path)
 
     @classmethod
     def fit(cls, features: list[Feature], stretch_y: np.ndarray, window_y: np.ndarray, stretch_cluster: np.ndarray,
-            stretch_load: np.ndarray, hop_cluster: np.ndarray, hop_load: np.ndarray, stretch_s: float,
-            profile, consecutive: bool) -> "EvidenceStats":
+            stretch_load: np.ndarray, stretch_s: float, profile, consecutive: bool) -> "EvidenceStats":
         """From ``stretch_y`` (n, F) stretch means, ``window_y`` (m, F) single windows, the cluster
-        points (n, 2) and loads (n,) of the stretches and of single spans; ``consecutive``: the
-        stretches follow each other in one stream (their lag-1 correlation is estimated)."""
+        points (n, 2) and loads (n,) of the stretches; ``consecutive``: the stretches follow each
+        other in one stream (their lag-1 correlation is estimated)."""
         n = stretch_y.shape[0]
         if n < 4:
             raise ValueError(f"need at least 4 independent stretches, got {n}")
@@ -159,18 +159,12 @@ class EvidenceStats:
         slope = profile.motor.rated_power_w / 100.0 / omega_m ** 2
         load0 = float(np.median(stretch_load))
 
-        def adjust(points, loads):
-            p = np.array(points, dtype=float).copy()
-            p[:, 1] -= slope * (np.asarray(loads) - load0)
-            return p
-
-        sc, hc = adjust(stretch_cluster, stretch_load), adjust(hop_cluster, hop_load)
+        sc = np.array(stretch_cluster, dtype=float).copy()
+        sc[:, 1] -= slope * (np.asarray(stretch_load) - load0)
         c_mean = sc.mean(axis=0)
-        floor = np.eye(2) * 1e-12 * (1.0 + np.abs(c_mean) ** 2)
-        c_cov = np.cov(sc, rowvar=False) + floor
-        h_cov = ((hc - c_mean).T @ (hc - c_mean)) / max(len(hc), 1) + floor
+        c_cov = np.cov(sc, rowvar=False) + np.eye(2) * 1e-12 * (1.0 + c_mean ** 2)
         return cls(features, mean, np.maximum(sd, 1e-6), np.maximum(window_sd, 1e-6), rho, n, float(stretch_s),
-                   load0, slope, c_mean, c_cov, h_cov)
+                   load0, slope, c_mean, c_cov)
 
     # -- standardisation ------------------------------------------------------------------------
     @property
@@ -184,17 +178,17 @@ class EvidenceStats:
         upper = self.mean + 1.645 * self.sd / math.sqrt(self.n)
         return (np.asarray(y) - upper) / self.scale
 
-    def span_z(self, y: np.ndarray) -> np.ndarray:
-        """z of a single span: in prediction sds of single windows, sd sqrt(1 + 1/n) wider."""
+    def window_z(self, y: np.ndarray) -> np.ndarray:
+        """z of a single window: in prediction sds of single windows, sd sqrt(1 + 1/n) wider."""
         return (np.asarray(y) - self.mean) / (self.window_sd * math.sqrt(1 + 1 / self.n))
 
-    def cluster_z(self, point, load_pct: float, hop: bool = False) -> float:
+    def cluster_z(self, point, load_pct: float) -> float:
         """Normal score of the load-adjusted cluster point's squared Mahalanobis distance
         (chi-square, 2 dof, widened by 1 + 1/n for the estimated centre)."""
         p = np.asarray(point, dtype=float).copy()
         p[1] -= self.b_gt_per_pct * (load_pct - self.load_pct)
         d = p - self.cluster_mean
-        d2 = float(d @ np.linalg.solve(self.cluster_hop_cov if hop else self.cluster_cov, d)) / (1 + 1 / self.n)
+        d2 = float(d @ np.linalg.solve(self.cluster_cov, d)) / (1 + 1 / self.n)
         tail = math.exp(-0.5 * min(d2, 1400.0))
         return 40.0 if tail <= 0.0 else -_NORMAL.inv_cdf(min(max(tail, 1e-300), 1 - 1e-16))
 
@@ -205,7 +199,7 @@ class EvidenceStats:
                 "mean": self.mean.tolist(), "sd": self.sd.tolist(), "window_sd": self.window_sd.tolist(),
                 "rho": self.rho, "n": self.n, "stretch_s": self.stretch_s, "load_pct": self.load_pct,
                 "b_gt_per_pct": self.b_gt_per_pct, "cluster_mean": self.cluster_mean.tolist(),
-                "cluster_cov": self.cluster_cov.tolist(), "cluster_hop_cov": self.cluster_hop_cov.tolist()}
+                "cluster_cov": self.cluster_cov.tolist()}
 
     @classmethod
     def from_json(cls, d: dict) -> "EvidenceStats":
@@ -213,7 +207,7 @@ class EvidenceStats:
         arr = lambda key: np.array(d[key], dtype=float)  # noqa: E731
         return cls(feats, arr("mean"), arr("sd"), arr("window_sd"), float(d["rho"]), int(d["n"]),
                    float(d["stretch_s"]), float(d["load_pct"]), float(d["b_gt_per_pct"]), arr("cluster_mean"),
-                   arr("cluster_cov"), arr("cluster_hop_cov"))
+                   arr("cluster_cov"))
 
 
 # --- the streaming decision ------------------------------------------------------------------------
@@ -278,6 +272,7 @@ class AlarmLogic:
         self._settle_left = 0.0
         self._last_op: tuple[float, float] | None = None
         self._last: Verdict = Verdict("normal", "normal", "normal", {})
+        self.last_z: dict[str, float] = {}  #: the last stretch's z per test (diagnostics, benchmark)
 
     def reset(self) -> None:
         """Forget accumulated evidence (e.g. after maintenance or an acknowledged repair)."""
@@ -288,10 +283,10 @@ class AlarmLogic:
         stretch_s = max(self.config.stretch_s, stats.stretch_s)
         return names, self.config.threshold(len(names), stretch_s)
 
-    def step(self, stats: EvidenceStats, profile, span_y: np.ndarray, window_y: np.ndarray, cluster_point, load_pct: float,
+    def step(self, stats: EvidenceStats, profile, window_y: np.ndarray, cluster_point, load_pct: float,
              fe_hz: float, hop_s: float) -> Verdict:
-        """One hop: ``span_y`` (F,) the span's feature values (mean of its windows), ``window_y`` (F,)
-        the newest window's, the span's cluster point and operating point."""
+        """One hop: ``window_y`` (F,) the newest window's feature values, the span's cluster point and
+        operating point (``profile``: the drive's, for the lines' frequencies in the reason)."""
         cfg = self.config
         op = (fe_hz, load_pct)
         if self._last_op is not None and (abs(op[0] - self._last_op[0]) > cfg.settle_fe_hz
@@ -306,20 +301,15 @@ class AlarmLogic:
         names, h = self._tests(stats)
         stretch_s = max(cfg.stretch_s, stats.stretch_s)
 
-        # gross path: this hop alone
+        # gross path: the newest window alone
         gross = None
-        z_span = stats.span_z(span_y)
-        j = int(np.argmax(z_span))
-        if z_span[j] >= cfg.gross_z:
+        z_win = stats.window_z(window_y)
+        j = int(np.argmax(z_win))
+        if z_win[j] >= cfg.gross_z:
             feat = stats.features[j]
             gross = {"path": "gross", "feature": feat.name, "families": list(feat.families),
                      "freqs_hz": [round(x, 2) for x in feat.freqs_hz(profile, fe_hz)],
-                     "z": round(float(z_span[j]), 2), "threshold": cfg.gross_z}
-        zc_hop = stats.cluster_z(cluster_point, load_pct, hop=True)
-        cluster_gross = zc_hop >= cfg.gross_z
-        if cluster_gross and gross is None:
-            gross = {"path": "gross", "feature": "cluster", "families": ["cluster"], "z": round(zc_hop, 2),
-                     "threshold": cfg.gross_z}
+                     "z": round(float(z_win[j]), 2), "threshold": cfg.gross_z}
 
         # slow path: a CUSUM step per completed stretch
         st = self._stretch
@@ -327,6 +317,10 @@ class AlarmLogic:
         closed = st.seconds >= stretch_s - 1e-9
         if closed:
             z = np.append(stats.stretch_z(st.y / st.hops), stats.cluster_z(st.cluster / st.hops, st.load / st.hops))
+            self.last_z = dict(zip(names, np.round(z, 3).tolist()))
+            if z[-1] >= cfg.gross_z and gross is None:  # the cluster's gross test: a whole stretch far out
+                gross = {"path": "gross", "feature": "cluster", "families": ["cluster"], "z": round(float(z[-1]), 2),
+                         "threshold": cfg.gross_z}
             for name, zi in zip(names, z):
                 self.s_caution[name] = min(2 * h, max(0.0, self.s_caution.get(name, 0.0) + min(zi, cfg.z_cap) - cfg.cusum_k))
                 self.s_warning[name] = min(2 * h, max(0.0, self.s_warning.get(name, 0.0)

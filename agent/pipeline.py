@@ -218,6 +218,14 @@ class DriveMonitor:
         if self._filled < self.n_span:
             return None
         sig = self._signals(self.n_span)
+        if self._builder is not None:
+            self._learn_hops += 1
+            if sig is None:
+                self._learn_bad += 1
+                if self._learn_bad > max(10, 0.2 * self._learn_hops):
+                    return self._refuse(f"{self._learn_bad} of {self._learn_hops} spans had NaN or saturated "
+                                        "samples: the data is not good enough to learn from",
+                                        {"fe_hz": self.status.fe_hz, "load_pct": self.status.load_pct})
         if sig is None:
             return self._set(quality="bad_input", reason="NaN or saturated samples in the span")
         op = operating_point(sig, self.profile)
@@ -245,8 +253,8 @@ class DriveMonitor:
         point = np.array([self._ts_over_lq(name), fit_torque(sig, self.profile)[1]])
         freqs = base.thresholds.freqs_hz
         y = feature_values(freqs, np.array(spectra), self.profile, op["fe_hz"], base.evidence.features, SEARCH_BINS)
-        v = self.alarms.step(base.evidence, self.profile, y.mean(axis=0), y[-1], point, op["load_pct"],
-                             op["fe_hz"], self.config.hop_s)
+        v = self.alarms.step(base.evidence, self.profile, y[-1], point, op["load_pct"], op["fe_hz"],
+                             self.config.hop_s)
         d = decide(base, freqs, np.array(spectra), point, op, self.drive)  # the paper's rule: peaks for display
         return self._set(quality="good", model=name, state=self._hold(v.state), spectrum_state=v.spectrum_state,
                          cluster_state=v.cluster_state, fe_hz=op["fe_hz"], load_pct=op["load_pct"],
@@ -320,9 +328,10 @@ class DriveMonitor:
         return new
 
     # -- learning -------------------------------------------------------------------------------
-    def start_learning(self, name: str, replace: bool = False, **settings) -> None:
-        """Learn a baseline named ``name`` from the stream (see the module docstring); ``replace``
-        allows it to replace a baseline that already covers the operating point."""
+    def start_learning(self, name: str | None = None, replace: bool = False, **settings) -> None:
+        """Learn a baseline named ``name`` (default ``<drive>_<fe>hz_<load>pct``, from the learned
+        operating point) from the stream; ``replace`` lets it replace the baseline of that name when
+        that baseline covers the operating point (never implicit)."""
         self._builder = BaselineBuilder(self.profile, window_s=self.config.window_s, **settings)
         self._builder.consecutive = True
         self._learn_name = name
@@ -333,6 +342,7 @@ class DriveMonitor:
         self._learn_last_op: tuple | None = None
         self._learn_seconds = 0.0
         self._learn_reported = -1
+        self._learn_hops = self._learn_bad = 0
         self.on_event("learning", {"name": name, "phase": "parameters", "progress_pct": 0.0})
 
     @property
@@ -355,6 +365,7 @@ class DriveMonitor:
     def _refuse(self, why: str, op: dict) -> DriveStatus:
         self._builder = None
         self.on_event("learning_refused", {"name": self._learn_name, "reason": why})
+        log.warning("%s: learning refused: %s", self.drive, why)
         return self._set(quality="no_model", state="normal", spectrum_state="normal", cluster_state="normal",
                          fe_hz=op["fe_hz"], load_pct=op["load_pct"], peaks=[], reason=f"learning refused: {why}")
 
@@ -398,7 +409,7 @@ class DriveMonitor:
         self._learn_seconds += hop_s
         if st["seconds"] >= c.alarm.stretch_s - 1e-9:
             b.add_stretch(np.array(st["y"]), np.mean(st["points"], axis=0), float(np.mean(st["loads"])),
-                          st["points"], st["loads"], st["seconds"])
+                          st["seconds"])
             self._learn_stretch = {"y": [], "points": [], "loads": [], "seconds": 0.0}
             loads = np.array(b.stretch_load)
             fes = np.array([f.operating_point["fe_hz"] for f in b.fits])
@@ -425,6 +436,8 @@ class DriveMonitor:
     def _finish_learning(self, op: dict) -> DriveStatus:
         baseline = self._builder.build()
         bop = baseline.operating_point
+        if self._learn_name is None:
+            self._learn_name = f"{self.drive}_{bop['fe_hz']:.0f}hz_{bop['load_pct']:.0f}pct"
         covering = self.library.select(bop["fe_hz"], bop["load_pct"])
         if covering is not None and not (self._learn_replace and covering == self._learn_name):
             return self._refuse(f"baseline {covering} already covers fe {bop['fe_hz']:.2f} Hz, load "

@@ -1,0 +1,129 @@
+"""``pmsm-agent learn``: commission a baseline for one drive at one operating point.
+
+The same learning code as the running agent (:meth:`agent.pipeline.DriveMonitor.start_learning`),
+fed from recorded files (``REC...``, each a separate stream, in the order given) or, without
+files, from the drive's configured live source. The baseline is written into the drive's library
+only when learning completes and every check passes; otherwise the command exits 2 with the
+reason and the library is unchanged:
+
+* not enough healthy evidence (``pipeline.learn_stretches`` stretches over ``pipeline.learn_min_s``);
+* speed or load spread beyond the operating-point tolerance (``pipeline.schedule_*_tol``);
+* too many unusable spans (NaN, saturation) or a drive that is not running;
+* a valid baseline already covers the operating point (``--replace`` with its ``--name`` replaces it).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+import time
+
+from agent.errors import InputError
+
+log = logging.getLogger("pmsm-agent.learn")
+
+
+def _drive(cfg, name: str):
+    for d in cfg.drives:
+        if d.name == name:
+            return d
+    raise InputError(f"--drive {name!r}: no such drive in {cfg.source} (drives: {', '.join(d.name for d in cfg.drives)})")
+
+
+def learn(cfg, drive_name: str, files: list[str], name: str | None = None, replace: bool = False,
+          progress=None, max_seconds: float | None = None) -> dict:
+    """Learn a baseline for ``drive_name``; returns what was learned, raises InputError with the
+    reason when learning refuses or the data runs out (``progress(pct, text)`` as it goes)."""
+    from agent.library import ModelLibrary, Schedule
+    from agent.pipeline import DriveMonitor
+    from agent.runtime.service import build_source, pipeline_config
+
+    drive = _drive(cfg, drive_name)
+    p = cfg.pipeline
+    library = ModelLibrary(cfg.library.path, Schedule(p.schedule_fe_tol_hz, p.schedule_load_tol_pct,
+                                                      p.schedule_hysteresis))
+    events: list[tuple[str, dict]] = []
+
+    def on_event(kind, detail):
+        events.append((kind, detail))
+        if kind == "learning" and progress is not None:
+            progress(detail.get("progress_pct", 0.0), detail.get("phase", ""))
+
+    pcfg = pipeline_config(cfg)
+    monitor = DriveMonitor(drive.name, drive.drive_profile, library, pcfg, on_event=on_event)
+    monitor.start_learning(name, replace=replace)
+    if files:
+        from agent.records import load_record
+        from protocols.base import Block
+
+        rate, first = drive.drive_profile.sampling.rate_hz, 0
+        block = max(1, int(round(0.1 * rate)))
+        for path in files:
+            rec = load_record(path, drive.drive_profile)
+            for start in range(0, rec.n - block + 1, block):
+                cut = slice(start, start + block)
+                monitor.process(Block(drive.name, rate, rec.v_abc[:, cut], rec.i_abc[:, cut], first + start, 0,
+                                      None if rec.theta_e is None else rec.theta_e[cut],
+                                      None if rec.omega_e is None else rec.omega_e[cut]))
+                if not monitor.learning:
+                    break
+            first += rec.n + block  # each file is a stream of its own
+            if not monitor.learning:
+                break
+    else:
+        source = build_source(drive, drive.drive_profile.sampling.rate_hz, pcfg.window_s * pcfg.span_windows)
+        t_end = None if max_seconds is None else time.monotonic() + max_seconds
+        source.open()
+        try:
+            while monitor.learning and (t_end is None or time.monotonic() < t_end):
+                blk = source.read(timeout=0.5)
+                if blk is not None:
+                    monitor.process(blk)
+                elif getattr(source, "finished", False):
+                    break
+        finally:
+            source.close()
+    refused = [d["reason"] for k, d in events if k == "learning_refused"]
+    if refused:
+        raise InputError(f"learning refused for drive {drive.name}: {refused[-1]}; the library is unchanged")
+    learned = [d for k, d in events if k == "learned"]
+    if not learned:
+        pct = monitor.learn_progress_pct
+        raise InputError(f"not enough healthy data for drive {drive.name}: learning reached {pct:.0f} % "
+                         f"(needs {p.learn_windows} spans, then {p.learn_stretches} stretches of {p.stretch_s:g} s "
+                         f"over at least {p.learn_min_s:g} s of steady operation); the library is unchanged")
+    return {"drive": drive.name, **learned[-1]}
+
+
+def cmd_learn(args) -> None:
+    from agent.runtime.config import check_config
+
+    cfg = check_config(args.config)
+
+    def progress(pct, phase):
+        log.info("learning %s: %.0f %%%s", args.drive, pct, f" ({phase})" if phase else "")
+
+    doc = learn(cfg, args.drive, args.data, name=args.name, replace=args.replace, progress=progress,
+                max_seconds=args.max_seconds)
+    if args.json:
+        json.dump(doc, sys.stdout)
+        sys.stdout.write("\n")
+    else:
+        op = doc["operating_point"]
+        print(f"learned {doc['name']} for drive {doc['drive']} -> {doc['path']} (fe {op['fe_hz']:.2f} Hz, "
+              f"load {op['load_pct']:.1f} %, {doc['stretches']} stretches)")
+
+
+def add_commands(sub, common) -> None:
+    """Add ``learn`` to the ``pmsm-agent`` subparsers."""
+    s = sub.add_parser("learn", parents=[common], help="commission a baseline for one drive (from files or the live source)")
+    s.add_argument("--config", required=True, metavar="FILE", help="agent config TOML (the drive, its library)")
+    s.add_argument("--drive", required=True, help="the drive's name in the config")
+    s.add_argument("--name", help="baseline name (default: <drive>_<fe>hz_<load>pct)")
+    s.add_argument("--replace", action="store_true",
+                   help="replace the baseline of this --name if it covers the operating point (never implicit)")
+    s.add_argument("--max-seconds", type=float, default=None,
+                   help="live source only: give up after this many seconds of wall time")
+    s.add_argument("data", nargs="*", metavar="REC", help="recorded files (CSV/NPZ/TDMS); none: the live source")
+    s.set_defaults(func=cmd_learn)
