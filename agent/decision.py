@@ -18,10 +18,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from agent.baseline import Baseline, residual_spectra
+from agent.evidence import feature_values
 from agent.frequencies import fault_frequencies
 from agent.identify import cluster_point, operating_point, record_signals
 from agent.model import Signals
 from agent.records import Record
+from agent.sanity import not_running
 from agent.spectrum import nearest_bin, peak_near
 
 STATES = ("normal", "caution", "warning")  #: codes 0 / 1 / 2
@@ -44,11 +46,15 @@ class Diagnosis:
     cluster: dict
     operating_point: dict
     notes: list[str] = field(default_factory=list)
+    evidence: dict = field(default_factory=dict)  #: the alarm evidence of the record (agent.evidence)
+    quality: str = "good"  #: "no_model" when the drive is not running (``reason`` says why)
+    reason: str | None = None
 
     def to_json(self) -> dict:
-        return {"record": self.record, "state": self.state, "spectrum_state": self.spectrum_state,
-                "cluster_state": self.cluster_state, "peaks": self.peaks, "cluster": self.cluster,
-                "operating_point": self.operating_point, "notes": self.notes}
+        return {"record": self.record, "state": self.state, "quality": self.quality, "reason": self.reason,
+                "spectrum_state": self.spectrum_state, "cluster_state": self.cluster_state, "peaks": self.peaks,
+                "cluster": self.cluster, "operating_point": self.operating_point, "notes": self.notes,
+                "evidence": self.evidence}
 
 
 def spectrum_peaks(baseline: Baseline, freqs: np.ndarray, amp: np.ndarray, fe_hz: float) -> list[dict]:
@@ -106,11 +112,33 @@ def diagnose(baseline: Baseline, record: Record) -> Diagnosis:
 
 
 def assess(baseline: Baseline, sig: Signals, source: str = "") -> Diagnosis:
-    """Table 4 decision for dq signals (a record or a streamed span) against a baseline."""
+    """Table 4 decision for dq signals (a record or a streamed span) against a baseline, in the
+    agent's order: operating point (a drive that is not running is no diagnosis), residual
+    spectra and cluster point, evidence, decision."""
+    op = operating_point(sig, baseline.profile)
+    idle = not_running(sig, baseline.profile)
+    if idle is not None:
+        return Diagnosis(source, "normal", "normal", "normal", [], {}, op, [], {}, "no_model", idle)
     m = baseline.model
     point = cluster_point(sig, baseline.profile, m.form, m.extra_q, baseline.settings.get("prefilter_hz"))
     freqs, amp = residual_spectra(m, sig, baseline.thresholds.window_s, baseline.thresholds.freqs_hz[-1])
-    return decide(baseline, freqs, amp, point, operating_point(sig, baseline.profile), source)
+    d = decide(baseline, freqs, amp, point, op, source)
+    d.evidence = record_evidence(baseline, freqs, amp, point, op)
+    return d
+
+
+def record_evidence(baseline: Baseline, freqs: np.ndarray, amp: np.ndarray, point, op: dict) -> dict:
+    """The agent's alarm evidence of one record taken as one stretch: per feature (sideband pair)
+    the stretch z and the largest single-window z, the cluster z (docs/method.md, "Alarms")."""
+    ev = baseline.evidence
+    if ev is None:
+        return {}
+    y = feature_values(freqs, amp, baseline.profile, op["fe_hz"], ev.features, baseline.thresholds.search_bins)
+    stretch, window = ev.stretch_z(y.mean(axis=0)), ev.window_z(y).max(axis=0)
+    out = {f.name: {"families": list(f.families), "stretch_z": round(float(a), 3), "window_z": round(float(b), 3)}
+           for f, a, b in zip(ev.features, stretch, window)}
+    out["cluster"] = {"stretch_z": round(ev.cluster_z(point, op["load_pct"]), 3)}
+    return out
 
 
 def decide(baseline: Baseline, freqs: np.ndarray, amp: np.ndarray, point: np.ndarray, op: dict,

@@ -258,3 +258,46 @@ def test_slight_wear_is_flagged_in_bounded_time(commissioned):
     assert flagged[0][1].extra["reason"]["path"] == "cusum"
     driven = [t for t, st in seen if st.extra.get("evidence", {}).get("gear_driven", 0.0) >= 1.0]
     assert driven and driven[0] > onset
+
+
+def test_the_same_record_gives_the_same_evidence_offline_and_in_the_agent(tmp_path):
+    """One flow: diagnose's windows and the streaming pipeline's windows of the same record give
+    identical feature values (the pipeline sees every window once its span is full)."""
+    from agent.baseline import residual_spectra
+    from agent.decision import diagnose
+    from agent.evidence import feature_values
+    from agent.identify import record_signals
+
+    base = healthy_baseline()
+    lib = ModelLibrary(tmp_path / "lib")
+    lib.add("b80", base)
+    rec = sim("gear_slight_wear", 80.0, 8.0, 700)
+    freqs, amp = residual_spectra(base.model, record_signals(rec, profile()), 2.0, base.thresholds.freqs_hz[-1])
+    offline = feature_values(freqs, amp, profile(), profile().rated_fe_hz, base.evidence.features)
+    mon = DriveMonitor("d1", profile(), lib, PipelineConfig(hop_s=2.0))
+    seen = []
+    step = mon.alarms.step
+    mon.alarms.step = lambda stats, prof, window_y, *a, **kw: (seen.append(window_y), step(stats, prof, window_y, *a, **kw))[1]
+    for blk in blocks_of(rec, 2500, 0):
+        mon.process(blk)
+    assert len(seen) == 3  # windows 2..4 (the first span fills at 4 s)
+    np.testing.assert_allclose(np.array(seen), offline[1:], rtol=0, atol=1e-9)
+    ev = diagnose(base, rec).evidence  # diagnose reports the same evidence, the record as one stretch
+    np.testing.assert_allclose([ev[f.name]["window_z"] for f in base.evidence.features],
+                               base.evidence.window_z(offline).max(axis=0), atol=1e-3)
+    assert ev["gear_driven k=1"]["stretch_z"] > 1.0  # the slight wear shows in the driven gear's pair
+
+
+def test_stopped_drive_is_not_running_never_an_alarm(tmp_path):
+    from agent.decision import diagnose
+
+    rec = sim("healthy", 80.0, 4.0, 1)
+    stopped = dataclasses.replace(rec, v_abc=np.zeros_like(rec.v_abc), i_abc=np.zeros_like(rec.i_abc))
+    d = diagnose(healthy_baseline(), stopped)
+    assert d.state == "normal" and d.quality == "no_model" and d.reason.startswith("not running")
+    lib = ModelLibrary(tmp_path / "lib")
+    lib.add("b80", healthy_baseline())
+    mon = DriveMonitor("d1", profile(), lib, PipelineConfig())
+    out = [st for blk in blocks_of(stopped, 2500, 0) for st in mon.process(blk)]
+    assert out and all(st.quality == "no_model" and st.state == "normal" for st in out)
+    assert out[-1].extra["reason"].startswith("not running")
