@@ -56,7 +56,11 @@ loop = true
 schedule = [{{ condition = "healthy", seconds = 600.0 }}]
 
 [pipeline]
+# a short commissioning (the test's drive is simulated at 20x real time)
 learn_windows = 4
+learn_stretches = 4
+learn_min_s = 0.0
+stretch_s = 2.0
 auto_learn = true
 
 [modbus_server]

@@ -157,10 +157,13 @@ class Journal:
             ids.append(self.record("state", status.drive, state=s, quality=q, t=status.t or None, detail={
                 "from": _STATE_NAMES.get(old_s), "spectrum_state": status.spectrum_state,
                 "cluster_state": status.cluster_state, "fe_hz": _num(status.fe_hz),
-                "load_pct": _num(status.load_pct), "model": status.model, "peaks": status.peaks[:8]}))
+                "load_pct": _num(status.load_pct), "model": status.model, "peaks": status.peaks[:8],
+                **getattr(status, "extra", {})}))  # why: the path, feature, z or evidence; evidence per family
         if q != old_q:
+            reason = getattr(status, "extra", {}).get("reason")
             ids.append(self.record("quality", status.drive, state=s, quality=q, t=status.t or None,
-                                   detail={"from": _QUALITY_NAMES.get(old_q), "model": status.model}))
+                                   detail={"from": _QUALITY_NAMES.get(old_q), "model": status.model,
+                                           **({"reason": reason} if reason else {})}))
         self._last[status.drive] = (s, q)
         return ids
 
@@ -290,9 +293,10 @@ class _Snapshot:
     """The fields of a DriveStatus the journal needs, copied at publish time."""
 
     __slots__ = ("drive", "state", "quality", "spectrum_state", "cluster_state", "fe_hz", "load_pct", "t",
-                 "model", "peaks")
+                 "model", "peaks", "extra")
 
     def __init__(self, s):
         for k in self.__slots__:
             setattr(self, k, getattr(s, k))
         self.peaks = list(s.peaks[:8])
+        self.extra = {k: s.extra[k] for k in ("reason", "evidence") if s.extra.get(k)}
