@@ -9,7 +9,9 @@ ripple, temperature, lubricant film), so windows are not independent tests.
 * **Features.** One piece of evidence per sideband *pair* fe -/+ k f of a family: the mean of
   the two lines' log-magnitudes. Pairs that land on the same lines (gear_driven k=2 and
   gear_driving k=1 at ratio 2, a chain order on a sprocket line) are one feature, reported under
-  every family that reaches it.
+  every family that reaches it. Per family one more: the mean of its pairs ("all k"), for faults
+  that spread over several orders (no lubrication); it is standardised on its own learned
+  spread, so the correlation between its pairs is accounted for as measured.
 * **Standardisation** over independent healthy *stretches* (``stretch_s`` of operation each, or
   one record each when learned offline), widened for what few stretches can tell: the mean is
   taken at its one-sided 95 % upper bound, the sd at its 95 % upper bound (chi-square), and
@@ -50,23 +52,28 @@ STATES = ("normal", "caution", "warning")
 
 @dataclass(frozen=True)
 class Feature:
-    """One sideband pair fe -/+ k f of ``family``; ``shared``: other (family, k) reaching the same lines."""
+    """One sideband pair fe -/+ k f of ``family`` (``shared``: other (family, k) reaching the same
+    lines), or, with ``members``, a family's combination: the mean of its pairs (indices into the
+    feature list), which a fault spread over several orders raises more than any one pair."""
 
     family: str
-    k: int
+    k: int  #: 0 for a family's combination
     shared: tuple[tuple[str, int], ...] = ()
+    members: tuple[int, ...] = ()
 
     @property
     def name(self) -> str:
-        return f"{self.family} k={self.k}"
+        return f"{self.family} all k" if self.members else f"{self.family} k={self.k}"
 
     @property
     def families(self) -> tuple[str, ...]:
         return tuple(dict.fromkeys((self.family,) + tuple(f for f, _ in self.shared)))
 
-    def freqs_hz(self, profile, fe_hz: float) -> tuple[float, float]:
+    def freqs_hz(self, profile, fe_hz: float) -> tuple[float, ...]:
+        """The lines read (Hz): the pair, or every pair of the family's combination."""
         f = base_frequencies(profile, fe_hz)[self.family]
-        return fe_hz - self.k * f, fe_hz + self.k * f
+        ks = [self.k] if not self.members else range(1, K_MAX + 1)
+        return tuple(x for k in ks for x in (fe_hz - k * f, fe_hz + k * f))
 
 
 def make_features(profile, fe_hz: float, resolution_hz: float, f_max_hz: float) -> list[Feature]:
@@ -84,7 +91,13 @@ def make_features(profile, fe_hz: float, resolution_hz: float, f_max_hz: float) 
                     break
             else:
                 out.append((Feature(family, k), (lo, hi)))
-    return [feat for feat, _ in out]
+    pairs = [feat for feat, _ in out]
+    combos = []
+    for family in base_frequencies(profile, fe_hz):
+        members = tuple(j for j, f in enumerate(pairs) if family in f.families)
+        if len(members) >= 2:
+            combos.append(Feature(family, 0, members=members))
+    return pairs + combos
 
 
 def feature_values(freqs: np.ndarray, amp: np.ndarray, profile, fe_hz: float, features: list[Feature],
@@ -92,10 +105,13 @@ def feature_values(freqs: np.ndarray, amp: np.ndarray, profile, fe_hz: float, fe
     """(n_windows, n_features): per window, the mean log-magnitude (ln A) of each pair's two lines,
     each read as the largest bin within ``search_bins`` of it (as the paper's thresholds are)."""
     amp = np.atleast_2d(amp)
-    targets = np.array([f for feat in features for f in feat.freqs_hz(profile, fe_hz)])
+    pairs = [feat for feat in features if not feat.members]
+    targets = np.array([f for feat in pairs for f in feat.freqs_hz(profile, fe_hz)])
     _, _, mag = peak_near(freqs, amp, targets, search_bins)
-    logs = np.log(np.maximum(np.asarray(mag, dtype=float), 1e-15)).reshape(amp.shape[0], len(features), 2)
-    return logs.mean(axis=2)
+    logs = np.log(np.maximum(np.asarray(mag, dtype=float), 1e-15)).reshape(amp.shape[0], len(pairs), 2)
+    y = logs.mean(axis=2)
+    combos = [y[:, list(feat.members)].mean(axis=1) for feat in features if feat.members]
+    return np.column_stack([y, *combos]) if combos else y
 
 
 # --- statistics ----------------------------------------------------------------------------------
@@ -194,8 +210,8 @@ class EvidenceStats:
 
     # -- model file -----------------------------------------------------------------------------
     def to_json(self) -> dict:
-        return {"features": [{"family": f.family, "k": f.k, "shared": [list(s) for s in f.shared]}
-                             for f in self.features],
+        return {"features": [{"family": f.family, "k": f.k, "shared": [list(s) for s in f.shared],
+                              "members": list(f.members)} for f in self.features],
                 "mean": self.mean.tolist(), "sd": self.sd.tolist(), "window_sd": self.window_sd.tolist(),
                 "rho": self.rho, "n": self.n, "stretch_s": self.stretch_s, "load_pct": self.load_pct,
                 "b_gt_per_pct": self.b_gt_per_pct, "cluster_mean": self.cluster_mean.tolist(),
@@ -203,7 +219,8 @@ class EvidenceStats:
 
     @classmethod
     def from_json(cls, d: dict) -> "EvidenceStats":
-        feats = [Feature(f["family"], int(f["k"]), tuple((s[0], int(s[1])) for s in f["shared"])) for f in d["features"]]
+        feats = [Feature(f["family"], int(f["k"]), tuple((s[0], int(s[1])) for s in f["shared"]),
+                         tuple(int(j) for j in f.get("members", ()))) for f in d["features"]]
         arr = lambda key: np.array(d[key], dtype=float)  # noqa: E731
         return cls(feats, arr("mean"), arr("sd"), arr("window_sd"), float(d["rho"]), int(d["n"]),
                    float(d["stretch_s"]), float(d["load_pct"]), float(d["b_gt_per_pct"]), arr("cluster_mean"),

@@ -81,7 +81,12 @@ def test_pairs_that_share_their_lines_are_one_feature():
     assert ("gear_driven", 2) in merged.shared and set(merged.families) == {"gear_driving", "gear_driven"}
     lo, hi = merged.freqs_hz(p, p.rated_fe_hz)
     assert (lo, hi) == pytest.approx((p.rated_fe_hz - p.rated_fe_hz / 4, p.rated_fe_hz + p.rated_fe_hz / 4))
-    assert len(set(names)) == len(names) == 5
+    pairs = [f for f in feats if not f.members]
+    assert len(set(names)) == len(names) and len(pairs) == 5
+    # one combination per family over the pairs that reach it (the shared pair in both)
+    combos = {f.family: {pairs[j].name for j in f.members} for f in feats if f.members}
+    assert combos == {"gear_driving": {"gear_driving k=1", "gear_driving k=2", "gear_driving k=3"},
+                      "gear_driven": {"gear_driven k=1", "gear_driving k=1", "gear_driven k=3"}}
 
 
 def _stats(n: int, sd: float = 0.1, features=None) -> EvidenceStats:
