@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 PYTEST_ARGS ?=
 
-.PHONY: setup setup-test demo test test-full bench docs clean
+.PHONY: setup setup-test demo test test-full bench bench-alarms docs clean
 
 setup: $(VENV)/.stamp-run
 
@@ -34,6 +34,11 @@ test-full: setup-test
 
 bench: setup-test
 	$(BIN)/python -m bench.run
+
+# false alarms per drive-day over 24 h of simulated operation per transmission, and detection
+# delays (about an hour on two cores; figures in docs/benchmarks.md)
+bench-alarms: setup-test
+	$(BIN)/python -m bench.bench_alarms
 
 docs: setup
 	$(BIN)/python -m firmware_if.plc_registers --write docs/registers.md
