@@ -11,6 +11,9 @@ Layout: IR0..15 global, IR 16+16*i .. 31+16*i drive ``i``; the holding registers
 layout, with commands at HR 16+16*i + 0/1. Every register from 0 up to the end of the last
 drive block is readable in both tables (reserved ones read 0) so a PLC can read any span in one
 request; only the command registers accept writes, any other write gets exception 2.
+Map version 2 adds, without moving anything of version 1, an *evidence block* per drive at IR
+``EVIDENCE_BASE + 16*i`` (4112 + 16*i): learning progress, the alarm's path and reason, and the
+alarm evidence of each family as a trend (docs/method.md, "Alarms").
 """
 
 from __future__ import annotations
@@ -18,12 +21,18 @@ from __future__ import annotations
 from firmware_if.modbus_map import (RegisterDef, check_layout, decode_block, encode_block, legacy,
                                     markdown_table, render_main)
 
-MAP_VERSION = 1
+MAP_VERSION = 2
 DEVICE_ID = 1
 GLOBAL_REGS = 16
 DRIVE_BASE = 16
 DRIVE_STRIDE = 16
 MAX_DRIVES = 256
+EVIDENCE_BASE = DRIVE_BASE + DRIVE_STRIDE * MAX_DRIVES  #: 4112: evidence block of drive 0 (input registers)
+#: ALARM_PATH codes: what raised the current caution/warning
+PATH_CODES = {"none": 0, "gross": 1, "cusum": 2}
+#: EVIDENCE_* rows: the family each reports (CUSUM / threshold of its strongest feature)
+EVIDENCE_FAMILIES = {"EVIDENCE_GEAR_DRIVING": "gear_driving", "EVIDENCE_GEAR_DRIVEN": "gear_driven",
+                     "EVIDENCE_CHAIN": "chain", "EVIDENCE_CLUSTER": "cluster"}
 
 #: Alarm and quality codes (CONTRACT section 6; equal to ``protocols.base`` STATE_CODES/QUALITY_CODES).
 STATE_CODES = {"normal": 0, "caution": 1, "warning": 2}
@@ -75,6 +84,21 @@ REGISTERS: tuple[RegisterDef, ...] = (
     RegisterDef("MODEL_ID", "IR", 14, block="drive",
                 description="Scheduled baseline model: CRC-16/MODBUS of its id string; 0 = none."),
     RegisterDef("UPDATE_COUNT", "IR", 15, block="drive", description="+1 per status update of this drive (wraps)."),
+    # ---- per-drive evidence block (input registers at EVIDENCE_BASE + 16*i)
+    RegisterDef("LEARN_PROGRESS", "IR", 0, scale=0.1, unit="%", block="evidence",
+                description="Progress of the baseline being learned (quality 2); 0 when not learning."),
+    RegisterDef("ALARM_PATH", "IR", 1, block="evidence",
+                description="What raised the alarm: 0 none, 1 gross fault (one window), 2 slow wear (accumulated evidence)."),
+    RegisterDef("SETTLING", "IR", 2, block="evidence",
+                description="1 while an operating-point change holds the decision (settling guard), else 0."),
+    *(RegisterDef(name, "IR", 3 + j, scale=0.001, block="evidence",
+                  description=f"Evidence of the {fam.replace('_', ' ')}: accumulated evidence / caution threshold "
+                              "(1.000 = caution); a trend to plot, 0 when none.")
+      for j, (name, fam) in enumerate(EVIDENCE_FAMILIES.items())),
+    RegisterDef("REASON_FREQ", "IR", 7, scale=0.1, unit="Hz", block="evidence",
+                description="Lower line of the feature behind the alarm; 0 = none (or the parameter cluster)."),
+    RegisterDef("REASON_SCORE", "IR", 8, "INT16", scale=0.01, block="evidence",
+                description="Gross path: the window's z (threshold 8); slow path: evidence / threshold; 0 = none."),
     # ---- per-drive command holding registers
     RegisterDef("ACK", "HR", 0, access="RW", block="drive",
                 description="Write 1: acknowledge the drive's current alarm (see ALARM_ACKED). "
@@ -88,6 +112,7 @@ BY_NAME = {d.name: d for d in REGISTERS}
 GLOBAL_IR = tuple(d for d in REGISTERS if d.block == "" and d.table == "IR")
 DRIVE_IR = tuple(d for d in REGISTERS if d.block == "drive" and d.table == "IR")
 DRIVE_HR = tuple(d for d in REGISTERS if d.block == "drive" and d.table == "HR")
+EVIDENCE_IR = tuple(d for d in REGISTERS if d.block == "evidence")
 COMMANDS = {"ACK": "acknowledge", "RELEARN": "relearn"}  #: command register -> command kind
 
 
@@ -98,13 +123,18 @@ def drive_base(i: int) -> int:
     return DRIVE_BASE + DRIVE_STRIDE * i
 
 
+def evidence_base(i: int) -> int:
+    """First input register of drive ``i``'s evidence block."""
+    return drive_base(i) - DRIVE_BASE + EVIDENCE_BASE
+
+
 def address(name: str, drive: int | None = None) -> int:
     """0-based wire address of ``name`` (``drive`` required for per-drive rows)."""
     d = BY_NAME[name]
-    if d.block == "drive":
+    if d.block:
         if drive is None:
             raise ValueError(f"{name} is a per-drive register: give drive=")
-        return drive_base(drive) + d.address
+        return (drive_base(drive) if d.block == "drive" else evidence_base(drive)) + d.address
     return d.address
 
 
@@ -126,6 +156,15 @@ def encode_global(values: dict) -> list[int]:
 def encode_drive(values: dict) -> list[int]:
     """The 16 input registers of one drive block from ``{row name: physical value}``."""
     return encode_block(DRIVE_IR, values, DRIVE_STRIDE)
+
+
+def encode_evidence(values: dict) -> list[int]:
+    """The 16 input registers of one evidence block from ``{row name: physical value}``."""
+    return encode_block(EVIDENCE_IR, values, DRIVE_STRIDE)
+
+
+def decode_evidence(regs) -> dict:
+    return decode_block(EVIDENCE_IR, regs)
 
 
 def decode_global(regs) -> dict:
@@ -179,7 +218,8 @@ def render_markdown() -> str:
         "  an unavailable value (NaN) reads as the row's n/a raw value.",
         "* Alarm states: " + _STATES + ". Data quality (separate from the alarm): " + _QUALITIES + ".",
         f"* Registers 0 .. {DRIVE_BASE - 1} + {DRIVE_STRIDE}·(number of drives) exist in both tables; reserved",
-        "  ones read 0, addresses past the last drive block give exception 2 (illegal data address).",
+        "  ones read 0, addresses past the last drive block give exception 2 (illegal data address),",
+        f"  except the input registers of the evidence blocks from {EVIDENCE_BASE}.",
         "* Only the command holding registers (ACK, RELEARN) accept writes; any other write gets exception 2.",
         "  A command register accepts 0 or 1 (other values: exception 3).",
         "* Heartbeat: IR1 advances at least once a second while the agent runs, also when a drive's",
@@ -208,6 +248,16 @@ def render_markdown() -> str:
         "",
         "Holding-register offsets +2..+15 are reserved (read 0, writes give exception 2).",
         "",
+        "## Evidence block (map version 2)",
+        "",
+        f"Drive i has input registers {EVIDENCE_BASE} + {DRIVE_STRIDE}·i + offset "
+        f"({legacy('IR', EVIDENCE_BASE)} + 16·i in the legacy notation) that say why the drive is in",
+        "alarm and how close each family is to one. The EVIDENCE_* rows are trends for SCADA: 1.000",
+        "is the caution threshold of the slow-wear evidence (docs/method.md, \"Alarms\").",
+        "Offsets +9..+15 are reserved (read 0). The block is written together with the drive block.",
+        "",
+        markdown_table(EVIDENCE_IR, base=EVIDENCE_BASE, offset_column=True),
+        "",
         "Each drive block is written in one piece per update, so a PLC that reads the 16 input",
         "registers of a block in one request always sees one consistent status. Before the agent's",
         "first update of a drive its block reads STATE 0, QUALITY 3 (stale), FE and LOAD n/a and",
@@ -223,8 +273,9 @@ def c_defines() -> dict[str, int]:
            "PMSM_PLC_GLOBAL_REGS": GLOBAL_REGS, "PMSM_PLC_DRIVE_BASE": DRIVE_BASE,
            "PMSM_PLC_DRIVE_STRIDE": DRIVE_STRIDE, "PMSM_PLC_MAX_DRIVES": MAX_DRIVES,
            "PMSM_PLC_CMD_IDLE": CMD_IDLE, "PMSM_PLC_CMD_REQUEST": CMD_REQUEST}
+    out["PMSM_PLC_EVIDENCE_BASE"] = EVIDENCE_BASE
     for d in REGISTERS:
-        kind = "DRV_" if d.block == "drive" else ""
+        kind = {"drive": "DRV_", "evidence": "EVD_"}.get(d.block, "")
         out[f"PMSM_PLC_{kind}{d.table}_{d.name}"] = d.address
     for k, v in STATE_CODES.items():
         out[f"PMSM_PLC_STATE_{k.upper()}"] = v
@@ -235,7 +286,7 @@ def c_defines() -> dict[str, int]:
 
 def _register_c_header() -> None:
     from firmware_if.c_header import Define, register_section
-    comments = {f"PMSM_PLC_{'DRV_' if d.block else ''}{d.table}_{d.name}":
+    comments = {f"PMSM_PLC_{ {'drive': 'DRV_', 'evidence': 'EVD_'}.get(d.block, '')}{d.table}_{d.name}":
                 f"{d.table}{' +offset' if d.block else ''} {d.type}"
                 f"{' x' + format(d.scale, 'g') if d.scale != 1 else ''}"
                 f"{' ' + d.unit if d.unit else ''}: {d.description}" for d in REGISTERS}

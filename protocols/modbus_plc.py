@@ -91,6 +91,24 @@ def status_values(status: DriveStatus) -> dict:
             "MODEL_ID": reg.model_id(status.model or "")}
 
 
+def evidence_values(status: DriveStatus) -> dict:
+    """DriveStatus -> ``{register row: physical value}`` of its evidence block (map version 2)."""
+    extra = status.extra or {}
+    reason = extra.get("reason") if isinstance(extra.get("reason"), dict) else {}
+    evidence = extra.get("evidence") or {}
+    values = {"LEARN_PROGRESS": float(extra.get("learn_progress_pct") or 0.0) if status.quality == "learning" else 0.0,
+              "ALARM_PATH": reg.PATH_CODES.get(reason.get("path", "none"), 0) if status.state != "normal" else 0,
+              "SETTLING": 1 if extra.get("settling") else 0,
+              "REASON_FREQ": float((reason.get("freqs_hz") or [0.0])[0]) if status.state != "normal" else 0.0,
+              "REASON_SCORE": 0.0}
+    if status.state != "normal" and reason:
+        values["REASON_SCORE"] = float(reason["z"]) if "z" in reason else \
+            float(reason.get("evidence", 0.0)) / max(float(reason.get("threshold", 1.0)), 1e-9)
+    for row, family in reg.EVIDENCE_FAMILIES.items():
+        values[row] = float(evidence.get(family, 0.0))
+    return values
+
+
 class PlcModbusServer(OpenClose):
     """Modbus TCP server for the PLC, unit id 1, one register block per drive.
 
@@ -163,7 +181,7 @@ class PlcModbusServer(OpenClose):
                 log.error("PLC server: status for unknown drive %r dropped (known: %s)", status.drive, self.drives)
             return
         try:
-            regs = reg.encode_drive(status_values(status))
+            regs = reg.encode_drive(status_values(status)) + reg.encode_evidence(evidence_values(status))
         except Exception as err:  # noqa: BLE001 - a bad status must not stop the pipeline
             self.stats.dropped += 1
             log.error("PLC server: cannot encode status of %r: %s", status.drive, err)
@@ -230,7 +248,8 @@ class PlcModbusServer(OpenClose):
             [SimData(0, count=16, values=False, datatype=DataType.BITS)],
             [SimData(0, count=16, values=False, datatype=DataType.BITS)],
             [SimData(0, count=self._size, values=0, datatype=DataType.REGISTERS)],
-            [SimData(0, count=self._size, values=0, datatype=DataType.REGISTERS)]))
+            [SimData(0, count=self._size, values=0, datatype=DataType.REGISTERS),
+             SimData(reg.EVIDENCE_BASE, count=reg.DRIVE_STRIDE * self._n, values=0, datatype=DataType.REGISTERS)]))
         server = ModbusTcpServer(dev, address=(self.host, self._port))
         try:
             await asyncio.wait_for(server.serve_forever(background=True), self.start_timeout_s)
@@ -289,7 +308,7 @@ class PlcModbusServer(OpenClose):
                                      "CLUSTER_STATE": 0, "FE": math.nan, "LOAD": math.nan, "DATA_AGE": 65535})
             return regs
         regs, t_pub = cur
-        regs = list(regs)
+        regs = list(regs[:reg.DRIVE_STRIDE])
         state = regs[_OFF["STATE"]]
         if state == 0:
             self._ack_level[i] = 0
@@ -299,6 +318,9 @@ class PlcModbusServer(OpenClose):
 
     async def _write_drive(self, i: int) -> None:
         await self._set(4, reg.drive_base(i), self._drive_registers(i, time.monotonic()))
+        cur = self._current[i]
+        if cur is not None:
+            await self._set(4, reg.evidence_base(i), list(cur[0][reg.DRIVE_STRIDE:]))
         self.stats.applied += 1
 
     async def _write_global(self) -> None:

@@ -286,3 +286,25 @@ def test_constructor_validation():
         PlcModbusServer(["a", "a"])
     with pytest.raises(ValueError):
         PlcModbusServer(["a"], heartbeat_period_s=2.0)
+
+
+def test_evidence_block_says_why_and_how_close(server, plc):
+    """Map version 2: drive i's evidence block at 4112 + 16 i carries the alarm's path and reason,
+    the evidence per family (1.000 = caution threshold) and the learning progress."""
+    assert ir(plc, 0, 1)[0] == 2
+    reason = {"path": "gross", "feature": "gear_driven k=1", "families": ["gear_driven"],
+              "freqs_hz": [87.5, 112.5], "z": 13.37, "threshold": 8.0}
+    server.publish(status("chain", state="warning", extra={"reason": reason, "settling": False,
+                                                           "evidence": {"gear_driven": 0.731, "cluster": 1.25}}))
+    base = 4112 + 16 * DRIVES.index("chain")
+    v = wait_for(lambda: (lambda d: d if d["ALARM_PATH"] == 1 else None)(reg.decode_evidence(ir(plc, base, 16))))
+    assert v["REASON_FREQ"] == pytest.approx(87.5) and v["REASON_SCORE"] == pytest.approx(13.37)
+    assert v["EVIDENCE_GEAR_DRIVEN"] == pytest.approx(0.731) and v["EVIDENCE_CLUSTER"] == pytest.approx(1.25)
+    assert v["EVIDENCE_GEAR_DRIVING"] == 0 and v["LEARN_PROGRESS"] == 0
+    assert ir(plc, reg.drive_base(DRIVES.index("chain")), 1)[0] == 2  # the drive block is unchanged
+    server.publish(status("spare", quality="learning", extra={"learn_progress_pct": 42.3}))
+    base = 4112 + 16 * DRIVES.index("spare")
+    v = wait_for(lambda: (lambda d: d if d["LEARN_PROGRESS"] else None)(reg.decode_evidence(ir(plc, base, 16))))
+    assert v["LEARN_PROGRESS"] == pytest.approx(42.3) and v["ALARM_PATH"] == 0
+    rr = plc.read_input_registers(4112 + 16 * len(DRIVES), count=1, device_id=1)  # past the last block
+    assert rr.isError() and rr.exception_code == 2
