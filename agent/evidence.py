@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 from statistics import NormalDist
 
 import numpy as np
@@ -131,6 +132,7 @@ def cusum_arl(h: float, k: float, shift: float = 0.0) -> float:
     return (math.exp(-2.0 * d * b) + 2.0 * d * b - 1.0) / (2.0 * d * d)
 
 
+@lru_cache(maxsize=64)
 def cusum_threshold(arl: float, k: float) -> float:
     """Smallest h whose in-control ARL (:func:`cusum_arl` with no shift) reaches ``arl`` (bisection)."""
     lo, hi = 0.0, 100.0
@@ -290,6 +292,7 @@ class AlarmLogic:
         self._last_op: tuple[float, float] | None = None
         self._last: Verdict = Verdict("normal", "normal", "normal", {})
         self.last_z: dict[str, float] = {}  #: the last stretch's z per test (diagnostics, benchmark)
+        self._cluster_gross: dict | None = None
 
     def reset(self) -> None:
         """Forget accumulated evidence (e.g. after maintenance or an acknowledged repair)."""
@@ -335,14 +338,16 @@ class AlarmLogic:
         if closed:
             z = np.append(stats.stretch_z(st.y / st.hops), stats.cluster_z(st.cluster / st.hops, st.load / st.hops))
             self.last_z = dict(zip(names, np.round(z, 3).tolist()))
-            if z[-1] >= cfg.gross_z and gross is None:  # the cluster's gross test: a whole stretch far out
-                gross = {"path": "gross", "feature": "cluster", "families": ["cluster"], "z": round(float(z[-1]), 2),
-                         "threshold": cfg.gross_z}
+            # the cluster's gross test reads a whole stretch, and its verdict stands until the next
+            self._cluster_gross = None if z[-1] < cfg.gross_z else {
+                "path": "gross", "feature": "cluster", "families": ["cluster"], "z": round(float(z[-1]), 2),
+                "threshold": cfg.gross_z}
             for name, zi in zip(names, z):
                 self.s_caution[name] = min(2 * h, max(0.0, self.s_caution.get(name, 0.0) + min(zi, cfg.z_cap) - cfg.cusum_k))
                 self.s_warning[name] = min(2 * h, max(0.0, self.s_warning.get(name, 0.0)
                                                       + min(zi, cfg.warn_k + cfg.z_cap) - cfg.warn_k))
             self._stretch = _Stretch()
+        gross = gross or self._cluster_gross
 
         # levels per source (spectrum features / cluster) and the reason
         def level(name):

@@ -306,3 +306,14 @@ def test_stopped_drive_is_not_running_never_an_alarm(tmp_path):
     out = [st for blk in blocks_of(stopped, 2500, 0) for st in mon.process(blk)]
     assert out and all(st.quality == "no_model" and st.state == "normal" for st in out)
     assert out[-1].extra["reason"].startswith("not running")
+
+
+def test_a_gross_cluster_stretch_holds_its_warning_until_the_next_stretch():
+    """The cluster's gross test reads whole stretches: its warning must not drop between them."""
+    st = _stats(40)
+    logic = AlarmLogic(AlarmConfig(stretch_s=30.0))
+    far = st.cluster_mean + np.array([0.0, 1.0])  # B_GT far out at the same load
+    states = [logic.step(st, profile(), np.array([0.0]), far, 80.0, 100.0, 1.0).state for _ in range(30)]
+    assert states[-1] == "warning" and set(states[:-1]) == {"normal"}  # decided at the stretch's end
+    held = [logic.step(st, profile(), np.array([0.0]), st.cluster_mean, 80.0, 100.0, 1.0) for _ in range(29)]
+    assert all(v.state == "warning" and v.reason["feature"] == "cluster" for v in held)
