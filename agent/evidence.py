@@ -142,6 +142,29 @@ def cusum_threshold(arl: float, k: float) -> float:
     return hi
 
 
+def learning_shift(stretch_y: np.ndarray) -> tuple[int, float]:
+    """Largest change of a feature's level within the learning stretches: the pooled two-sample
+    t between the stretches before and after each split (each side at least a quarter of them),
+    deflated by sqrt((1 + rho) / (1 - rho)) for the lag-1 correlation rho of the stretches about
+    their side's mean, maximised over splits; returns (feature index, t). A fault that starts, or
+    grows, while a baseline is learned shows here; a healthy drive's thermal drift does not
+    (benchmark). Meaningful from about 20 stretches on."""
+    n = stretch_y.shape[0]
+    edge = max(2, n // 4)
+    best_j, best_t = 0, 0.0
+    for m in range(edge, n - edge + 1):
+        a, b = stretch_y[:m], stretch_y[m:]
+        r = np.concatenate((a - a.mean(axis=0), b - b.mean(axis=0)))
+        ss = np.maximum(np.sum(r * r, axis=0), 1e-24)
+        rho = np.clip(np.sum(r[1:] * r[:-1], axis=0) / ss, 0.0, 0.9)
+        se = np.sqrt(ss / (n - 2) * (1 / m + 1 / (n - m)) * (1 + rho) / (1 - rho))
+        t = (b.mean(axis=0) - a.mean(axis=0)) / se
+        j = int(np.argmax(np.abs(t)))
+        if abs(t[j]) > abs(best_t):
+            best_j, best_t = j, float(t[j])
+    return best_j, best_t
+
+
 @dataclass
 class EvidenceStats:
     """Healthy statistics of the features and the cluster, learned over independent stretches."""

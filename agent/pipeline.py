@@ -37,7 +37,7 @@ import numpy as np
 
 from agent.baseline import SEARCH_BINS, BaselineBuilder, residual_spectra
 from agent.decision import STATES, decide
-from agent.evidence import AlarmConfig, AlarmLogic, feature_values
+from agent.evidence import AlarmConfig, AlarmLogic, feature_values, learning_shift
 from agent.frames import CLARKE, abc_to_dq
 from agent.identify import cluster_point, fit_torque, operating_point
 from agent.sanity import not_running
@@ -51,6 +51,10 @@ log = logging.getLogger(__name__)
 
 
 _THETA_LIMIT = 2.0**20  #: rad; the buffered angle is kept below this
+#: |t| of a feature's change within the learning stretches above which learning refuses (a fault
+#: starting while learning): with 40 stretches P(|t_38| > 6) = 5e-7 per split and feature
+LEARNING_SHIFT_T = 6.0
+LEARNING_SHIFT_MIN = 20  #: stretches from which the check is made (fewer: too little to tell)
 #: rows of the window buffer: phase voltages and currents, angle (wrapped), speed, dq signals, power
 _ROWS = ("va", "vb", "vc", "ia", "ib", "ic", "theta_e", "omega_e", "i_d", "i_q", "v_d", "v_q", "p_in",
          "cos_theta", "sin_theta")
@@ -434,7 +438,12 @@ class DriveMonitor:
                          reason=f"learning {self._learn_name}: {pct:.0f} %")
 
     def _finish_learning(self, op: dict) -> DriveStatus:
-        baseline = self._builder.build()
+        b = self._builder
+        j, t = learning_shift(np.array([w.mean(axis=0) for w in b.stretch_windows]))
+        if len(b.stretch_windows) >= LEARNING_SHIFT_MIN and abs(t) > LEARNING_SHIFT_T:
+            return self._refuse(f"{b.features()[j].name} changed during learning (t = {t:.1f} between the stretches "
+                                "before and after a change): the data does not look healthy and steady", op)
+        baseline = b.build()
         bop = baseline.operating_point
         if self._learn_name is None:
             self._learn_name = f"{self.drive}_{bop['fe_hz']:.0f}hz_{bop['load_pct']:.0f}pct"

@@ -317,3 +317,19 @@ def test_a_gross_cluster_stretch_holds_its_warning_until_the_next_stretch():
     assert states[-1] == "warning" and set(states[:-1]) == {"normal"}  # decided at the stretch's end
     held = [logic.step(st, profile(), np.array([0.0]), st.cluster_mean, 80.0, 100.0, 1.0) for _ in range(29)]
     assert all(v.state == "warning" and v.reason["feature"] == "cluster" for v in held)
+
+
+def test_learning_refuses_data_with_a_fault_that_starts_while_learning(tmp_path):
+    """Pass 2's stretches: twelve healthy, then twelve with a worn tooth: the change (t far beyond
+    6) is refused, and nothing is written; the same amount of healthy data is learned."""
+    lib = ModelLibrary(tmp_path / "lib")
+    cfg = dataclasses.replace(SHORT_LEARN, learn_stretches=24)
+    healthy = [sim("healthy", 80.0, 8.0, 600 + j) for j in range(30)]
+    _, events = _learn(lib, healthy, cfg=cfg)
+    assert any(k == "learned" for k, _ in events), [d for k, d in events if k == "learning_refused"]
+    lib = ModelLibrary(tmp_path / "lib2")
+    recs = healthy[:15] + [sim("gear_severe_wear", 80.0, 8.0, 620 + j) for j in range(15)]
+    _, events = _learn(lib, recs, cfg=cfg)
+    refused = [d["reason"] for k, d in events if k == "learning_refused"]
+    assert refused and "changed during learning" in refused[0] and "gear_driven" in refused[0], refused
+    assert not list((tmp_path / "lib2").glob("*.json"))
