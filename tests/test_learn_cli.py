@@ -80,3 +80,16 @@ def test_learn_refuses_with_one_line_and_leaves_the_library_alone(tmp_path, caps
     assert rc == 2 and out == "" and "Traceback" not in err
     assert len(err.strip().splitlines()) == 1 and expect in err, err
     assert not list((tmp_path / "state" / "library").glob("*.json"))
+
+
+def test_learn_from_the_live_source(tmp_path, capsys):
+    """Without files: the drive's configured source (here the simulated drive at 1000x real time)."""
+    cfg = config(tmp_path)
+    text = cfg.read_text().replace('kind = "simulated"', 'kind = "simulated"\nspeedup = 1000.0\nload_pct = 80.0\n'
+                                   'schedule = [{ condition = "healthy", seconds = 600.0 }]')
+    cfg.write_text(text)
+    rc, out, err = run(["learn", "--json", "--config", str(cfg), "--drive", "drive1", "--name", "live80",
+                        "--max-seconds", "120"], capsys)
+    assert rc == 0, err
+    assert json.loads(out)["name"] == "live80"
+    assert (tmp_path / "state" / "library" / "live80.json").is_file()
