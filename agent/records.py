@@ -20,7 +20,9 @@ import csv
 import json
 import re
 import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass, field
+from itertools import islice
 from pathlib import Path
 
 import numpy as np
@@ -94,6 +96,29 @@ def load_record(path: str | Path, profile=None, min_samples: int = 0) -> Record:
         raise InputError("no such record file", source=src)
     columns, meta, found = reader(path, src)
     return validate_record(_from_columns(columns, src, meta, found), profile, min_samples)
+
+
+def stream_record(path: str | Path, profile=None, chunk_samples: int = 25_000) -> Iterator[Record]:
+    """Read a record in consecutive chunks of ``chunk_samples`` (the last one shorter), each
+    validated as :func:`validate_record` validates a whole record, plus the time step across chunk
+    boundaries; memory stays at one chunk whatever the file's length. Same formats and errors as
+    :func:`load_record` (an error in a later chunk is raised when that chunk is reached)."""
+    path = Path(path)
+    src = str(path)
+    opener = _STREAMERS[_suffix(path)]
+    if not path.is_file():
+        raise InputError("no such record file", source=src)
+    last_t, step = None, None
+    for columns, meta, found in opener(path, src, max(2, int(chunk_samples))):
+        chunk = validate_record(_from_columns(columns, src, meta, found), profile)
+        if last_t is not None:
+            gap = float(chunk.t[0] - last_t)
+            if abs(gap - step) > TIME_TOLERANCE * step:
+                raise InputError(f"non-uniform time: step {gap:.9g} s before t = {chunk.t[0]!r}, expected {step:.9g} s",
+                                 source=src)
+        step = (float(chunk.t[-1] - chunk.t[0]) / (chunk.n - 1)) if step is None else step
+        last_t = float(chunk.t[-1])
+        yield chunk
 
 
 def save_record(record: Record, path: str | Path) -> Path:
@@ -195,36 +220,66 @@ _CONVERT = re.compile(r"could not convert string '(.*)' to \w+ at row (\d+), col
 _RAGGED = re.compile(r"at row (\d+) with (\d+) columns")
 
 
-def _read_csv(path: Path, src: str):
+def _csv_header(f, src: str) -> tuple[list[str], list[str]]:
+    """(header, the known channel names in it) of an open CSV file, positioned after the header."""
+    header = [h.strip() for h in next(csv.reader([f.readline()]), [])]
+    dup = sorted({h for h in header if h in UNITS and header.count(h) > 1})
+    if dup:
+        raise InputError(f"duplicate column '{dup[0]}'", source=src)
+    return header, [k for k in UNITS if k in header]
+
+
+def _csv_rows(lines, header: list[str], names: list[str], src: str, first_row: int = 0) -> np.ndarray:
+    """CSV data rows (an open file or a list of lines) -> (rows, len(names)); errors name the sample."""
     try:
-        with open(path, encoding="utf-8-sig", newline="") as f:
-            header = [h.strip() for h in next(csv.reader([f.readline()]), [])]
-            dup = sorted({h for h in header if h in UNITS and header.count(h) > 1})
-            if dup:
-                raise InputError(f"duplicate column '{dup[0]}'", source=src)
-            names = [k for k in UNITS if k in header]
-            if not names:
-                return {}, {}, header
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", UserWarning)  # "input contained no data"
-                data = np.loadtxt(f, delimiter=",", usecols=[header.index(k) for k in names], ndmin=2)
-    except UnicodeDecodeError as err:
-        raise InputError(f"cannot read CSV: not UTF-8 text ({err.reason} at byte {err.start})", source=src) from err
-    except OSError as err:
-        raise InputError(f"cannot read CSV: {err.strerror or err}", source=src) from err
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # "input contained no data"
+            data = np.loadtxt(lines, delimiter=",", usecols=[header.index(k) for k in names], ndmin=2)
     except ValueError as err:
         msg = str(err)
         if m := _CONVERT.search(msg):
             value, row, col = m.group(1), int(m.group(2)), int(m.group(3))
-            raise InputError(f"non-numeric value {value!r} in column '{header[col - 1]}' at sample {row}",
-                             source=src) from err
+            raise InputError(f"non-numeric value {value!r} in column '{header[col - 1]}' at sample "
+                             f"{first_row + row}", source=src) from err
         if m := _RAGGED.search(msg):  # numpy counts this row from 1, the one above from 0
-            raise InputError(f"sample {int(m.group(1)) - 1} has only {m.group(2)} fields, header has {len(header)}",
-                             source=src) from err
+            raise InputError(f"sample {first_row + int(m.group(1)) - 1} has only {m.group(2)} fields, header has "
+                             f"{len(header)}", source=src) from err
         raise InputError(f"cannot parse CSV: {msg}", source=src) from err
-    if data.shape[1] != len(names):  # no data rows
-        data = np.empty((0, len(names)))
+    return data if data.shape[1] == len(names) else np.empty((0, len(names)))  # no data rows
+
+
+def _csv_errors(err: Exception, src: str) -> InputError:
+    if isinstance(err, UnicodeDecodeError):
+        return InputError(f"cannot read CSV: not UTF-8 text ({err.reason} at byte {err.start})", source=src)
+    return InputError(f"cannot read CSV: {err.strerror or err}", source=src)
+
+
+def _read_csv(path: Path, src: str):
+    try:
+        with open(path, encoding="utf-8-sig", newline="") as f:
+            header, names = _csv_header(f, src)
+            if not names:
+                return {}, {}, header
+            data = _csv_rows(f, header, names, src)
+    except (UnicodeDecodeError, OSError) as err:
+        raise _csv_errors(err, src) from err
     return dict(zip(names, data.T)), {}, header
+
+
+def _stream_csv(path: Path, src: str, chunk: int):
+    try:
+        with open(path, encoding="utf-8-sig", newline="") as f:
+            header, names = _csv_header(f, src)
+            if not names:
+                yield {}, {}, header
+                return
+            row = 0
+            while lines := list(islice(f, chunk)):
+                data = _csv_rows(lines, header, names, src, row)
+                row += len(lines)
+                yield dict(zip(names, data.T)), {}, header
+    except (UnicodeDecodeError, OSError) as err:
+        raise _csv_errors(err, src) from err
 
 
 def _write_csv(record: Record, path: Path) -> None:
@@ -250,15 +305,64 @@ def _read_npz(path: Path, src: str):
     except Exception as err:  # noqa: BLE001
         where = f" (array '{key}')" if key else ""
         raise InputError(f"cannot read NPZ{where}: {err}", source=src) from err
-    meta = {}
-    if META_KEY in cols:
-        try:
-            meta = json.loads(str(cols.pop(META_KEY).reshape(-1)[0]))
-        except (ValueError, IndexError) as err:
-            raise InputError(f"'{META_KEY}' is not a JSON string: {err}", source=src) from err
-        if not isinstance(meta, dict):
-            raise InputError(f"'{META_KEY}' must be a JSON object", source=src)
+    meta = _npz_meta(cols.pop(META_KEY), src) if META_KEY in cols else {}
     return cols, meta, found
+
+
+def _stream_npz(path: Path, src: str, chunk: int):
+    """NPZ members read ``chunk`` values at a time straight from the archive (each member is an
+    .npy file: header, then the raw array)."""
+    import zipfile
+
+    key = None
+    try:
+        with zipfile.ZipFile(path) as z:
+            members = {n[:-4]: n for n in z.namelist() if n.endswith(".npy")}
+            found = [k for k in members if k != META_KEY]
+            meta = {}
+            if META_KEY in members:
+                with z.open(members[META_KEY]) as f:
+                    meta = _npz_meta(np.lib.format.read_array(f, allow_pickle=False), src)
+            streams, total = {}, None
+            for key in (k for k in UNITS if k in members):
+                f = z.open(members[key])
+                version = np.lib.format.read_magic(f)
+                shape, fortran, dtype = (np.lib.format.read_array_header_1_0(f) if version == (1, 0)
+                                         else np.lib.format.read_array_header_2_0(f))
+                if len(shape) != 1 or dtype.kind not in "iuf":
+                    raise InputError(f"column '{key}' must be a 1-D numeric array, has shape {shape}, dtype {dtype}",
+                                     source=src)
+                streams[key] = (f, dtype)
+                total = shape[0] if total is None else total
+            if not streams:
+                yield {}, meta, found
+                return
+            done = 0
+            while done < total or done == 0:
+                n = min(chunk, total - done)
+                cols = {}
+                for key, (f, dtype) in streams.items():
+                    raw = f.read(n * dtype.itemsize)
+                    cols[key] = np.frombuffer(raw, dtype=dtype)
+                done += n
+                yield cols, meta, found
+                if n == 0:
+                    return
+    except InputError:
+        raise
+    except Exception as err:  # noqa: BLE001 - any failure of the archive reader means a corrupt file
+        where = f" (array '{key}')" if key else ""
+        raise InputError(f"cannot read NPZ{where}: {err}", source=src) from err
+
+
+def _npz_meta(value, src: str) -> dict:
+    try:
+        meta = json.loads(str(np.asarray(value).reshape(-1)[0]))
+    except (ValueError, IndexError) as err:
+        raise InputError(f"'{META_KEY}' is not a JSON string: {err}", source=src) from err
+    if not isinstance(meta, dict):
+        raise InputError(f"'{META_KEY}' must be a JSON object", source=src)
+    return meta
 
 
 def _write_npz(record: Record, path: Path) -> None:
@@ -270,6 +374,59 @@ def _write_npz(record: Record, path: Path) -> None:
 # TDMS -----------------------------------------------------------------------------------------
 
 
+def _tdms_group(tf, src: str):
+    """The record's group of a TDMS file (the only one, the named one, or the only complete one)."""
+    groups = {g.name: g for g in tf.groups()}
+    named = tf.properties.get(GROUP_PROPERTY)
+    if named is not None:
+        if named not in groups:
+            raise InputError(f"group '{named}' named by root property '{GROUP_PROPERTY}' not found "
+                             f"(groups: {', '.join(groups) or 'none'})", source=src)
+        return groups[named]
+    fits = [g for g in groups.values() if all(k in g for k in REQUIRED[1:])]
+    if len(groups) == 1 or len(fits) == 1:
+        return fits[0] if len(fits) == 1 else next(iter(groups.values()))
+    raise InputError(f"cannot tell which of {len(groups)} groups holds the record "
+                     f"({', '.join(groups) or 'none'}); name it with the root property "
+                     f"'{GROUP_PROPERTY}'", source=src)
+
+
+def _tdms_time(chans: dict, src: str) -> tuple[float, float] | None:
+    """(t0, step) from the channels' waveform properties; None when a ``t`` channel must be used."""
+    signals = [k for k in chans if k != "t"]
+    if not signals:
+        return None
+    ref = signals[0]
+    inc = [chans[k].properties.get("wf_increment") for k in signals]
+    if all(v is not None for v in inc):
+        d0 = float(inc[0])
+        for k, d in zip(signals, inc):
+            if abs(float(d) - d0) > TIME_TOLERANCE * abs(d0):
+                raise InputError(f"channel '{k}' has wf_increment {float(d):.9g} s, '{ref}' has {d0:.9g} s",
+                                 source=src)
+        return float(chans[ref].properties.get("wf_start_offset", 0.0)), d0
+    if "t" not in chans:
+        k = signals[inc.index(None)]
+        raise InputError(f"channel '{k}' has no wf_increment property and there is no 't' channel", source=src)
+    return None
+
+
+def _tdms_chunks(tf, src: str, chunk: int | None):
+    group = _tdms_group(tf, src)
+    chans = {k: group[k] for k in UNITS if k in group}
+    timing = _tdms_time(chans, src)
+    meta = {k: _plain(v) for k, v in group.properties.items()}
+    found = [c.name for c in group.channels()]
+    n = max((len(c) for c in chans.values()), default=0)
+    step = n if chunk is None else chunk
+    for start in range(0, max(n, 1), max(step, 1)):
+        cols = {k: c[start:start + step] for k, c in chans.items()}
+        if timing is not None:
+            size = cols[next(k for k in chans if k != "t")].size
+            cols["t"] = timing[0] + timing[1] * np.arange(start, start + size)
+        yield cols, meta, found
+
+
 def _read_tdms(path: Path, src: str):
     from nptdms import TdmsFile
 
@@ -277,40 +434,18 @@ def _read_tdms(path: Path, src: str):
         tf = TdmsFile.read(path)
     except Exception as err:  # noqa: BLE001 - npTDMS raises many types on corrupt files
         raise InputError(f"cannot read TDMS: {err}", source=src) from err
-    groups = {g.name: g for g in tf.groups()}
-    named = tf.properties.get(GROUP_PROPERTY)
-    if named is not None:
-        if named not in groups:
-            raise InputError(f"group '{named}' named by root property '{GROUP_PROPERTY}' not found "
-                             f"(groups: {', '.join(groups) or 'none'})", source=src)
-        group = groups[named]
-    else:
-        fits = [g for g in groups.values() if all(k in g for k in REQUIRED[1:])]
-        if len(groups) == 1 or len(fits) == 1:
-            group = fits[0] if len(fits) == 1 else next(iter(groups.values()))
-        else:
-            raise InputError(f"cannot tell which of {len(groups)} groups holds the record "
-                             f"({', '.join(groups) or 'none'}); name it with the root property "
-                             f"'{GROUP_PROPERTY}'", source=src)
-    chans = {k: group[k] for k in UNITS if k in group}
-    cols = {k: c[:] for k, c in chans.items()}
-    signals = [k for k in chans if k != "t"]
-    if signals:
-        ref = signals[0]
-        inc = [chans[k].properties.get("wf_increment") for k in signals]
-        if all(v is not None for v in inc):
-            d0 = float(inc[0])
-            for k, d in zip(signals, inc):
-                if abs(float(d) - d0) > TIME_TOLERANCE * abs(d0):
-                    raise InputError(f"channel '{k}' has wf_increment {float(d):.9g} s, '{ref}' has {d0:.9g} s",
-                                     source=src)
-            t0 = float(chans[ref].properties.get("wf_start_offset", 0.0))
-            cols["t"] = t0 + d0 * np.arange(cols[ref].size)
-        elif "t" not in cols:
-            k = signals[inc.index(None)]
-            raise InputError(f"channel '{k}' has no wf_increment property and there is no 't' channel",
-                             source=src)
-    return cols, {k: _plain(v) for k, v in group.properties.items()}, [c.name for c in group.channels()]
+    return next(_tdms_chunks(tf, src, None))
+
+
+def _stream_tdms(path: Path, src: str, chunk: int):
+    from nptdms import TdmsFile
+
+    try:
+        tf = TdmsFile.open(path)  # lazy: slices read from disk
+    except Exception as err:  # noqa: BLE001
+        raise InputError(f"cannot read TDMS: {err}", source=src) from err
+    with tf:
+        yield from _tdms_chunks(tf, src, chunk)
 
 
 def _tdms_value(value):
@@ -335,4 +470,5 @@ def _write_tdms(record: Record, path: Path) -> None:
 
 
 _READERS = {".csv": _read_csv, ".npz": _read_npz, ".tdms": _read_tdms}
+_STREAMERS = {".csv": _stream_csv, ".npz": _stream_npz, ".tdms": _stream_tdms}
 _WRITERS = {".csv": _write_csv, ".npz": _write_npz, ".tdms": _write_tdms}

@@ -357,3 +357,48 @@ def test_record_properties():
     rec = make_record(n=2500)
     assert rec.n == 2500 and rec.rate_hz == pytest.approx(FS) and rec.duration_s == pytest.approx(0.1)
     assert list(rec.channels()) == ["t", *VOLTAGES, *CURRENTS, "theta_e", "omega_e"]
+
+
+# --- streaming -------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("fmt", [".csv", ".npz", ".tdms"])
+@pytest.mark.parametrize("optional", [True, False])
+def test_streamed_chunks_equal_the_whole_record(tmp_path, fmt, optional):
+    from agent.records import stream_record
+
+    rec = make_record(n=1003, optional=optional)
+    path = save_record(rec, tmp_path / f"r{fmt}")
+    whole = load_record(path)
+    chunks = list(stream_record(path, chunk_samples=100))
+    assert [c.n for c in chunks] == [100] * 10 + [3]
+    for name, x in whole.channels().items():
+        np.testing.assert_array_equal(np.concatenate([c.channels()[name] for c in chunks]), x)
+    assert all(c.meta == whole.meta for c in chunks)
+
+
+@pytest.mark.parametrize("fmt", [".csv", ".npz"])
+def test_stream_raises_when_the_bad_chunk_is_reached(tmp_path, fmt):
+    from agent.records import stream_record
+
+    rec = make_record(n=1000)
+    rec.i_abc[1, 750] = np.nan
+    cols = columns(rec)
+    path = tmp_path / f"r{fmt}"
+    (write_csv if fmt == ".csv" else write_npz)(path, cols)
+    chunks = stream_record(path, chunk_samples=250)
+    assert [next(chunks).n for _ in range(3)] == [250, 250, 250]  # read before the bad sample
+    with raises("NaN in column 'ib' at sample 0"):  # sample 750 is the 4th chunk's first
+        next(chunks)
+
+
+def test_stream_checks_the_step_across_chunks(tmp_path):
+    from agent.records import stream_record
+
+    rec = make_record(n=400)
+    cols = columns(rec)
+    cols["t"] = cols["t"].copy()
+    cols["t"][200:] += 0.5 / FS  # a jump exactly at a chunk boundary
+    path = tmp_path / "r.csv"
+    write_csv(path, cols)
+    with raises("non-uniform time"):
+        list(stream_record(path, chunk_samples=200))

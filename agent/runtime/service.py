@@ -1,7 +1,9 @@
 """The agent service: sources -> pipelines -> sinks, with lifecycle, health and signals.
 
 Threads: one reader per source (``Source.read`` with a timeout, blocks into a bounded per-drive
-queue; the oldest block is dropped and counted when the pipeline falls behind), and one DSP
+queue; the oldest block is dropped and counted when the pipeline falls behind, except for a
+``lossless`` source, a file played as fast as the pipeline takes it, whose reader waits; a
+``finished`` source's reader idles until the service stops), and one DSP
 thread that runs every drive's :class:`agent.pipeline.DriveMonitor`, hands each status to the
 sinks (Modbus server for the PLC, zenoh, journal; ``publish`` never blocks), applies PLC
 commands and pings the systemd watchdog from the place that proves progress.
@@ -43,13 +45,13 @@ def build_source(drive, rate_hz: float, span_s: float | None = None) -> Source:
     span_windows), the length of a Modbus snapshot (default: the default pipeline's)."""
     s, name, profile = drive.source, drive.name, drive.drive_profile
     if s.kind == "simulated":
-        from protocols.playback import simulated_source
+        from agent.playback import simulated_source
 
         schedule = [(p.condition, p.seconds, p.load_pct or s.load_pct, p.severity) for p in s.schedule]
         return simulated_source(profile, schedule, name, seed=s.seed, block_s=s.block_s, speedup=s.speedup,
                                 loop=s.loop)
     if s.kind == "replay":
-        from protocols.playback import replay_source
+        from agent.playback import replay_source
 
         return replay_source([str(f) for f in s.files], name, profile, block_s=s.block_s, speedup=s.speedup,
                              loop=s.loop)
@@ -195,10 +197,24 @@ class Service:
                 log.warning("%s: cannot open source (%s); retrying in %.1f s", d.name, err, backoff)
                 self.stop_event.wait(backoff)
                 backoff = min(2 * backoff, 30.0)
+        lossless = getattr(d.source, "lossless", False)
         while not self.stop_event.is_set():
+            if getattr(d.source, "finished", False):  # a played-out file: idle, never spin
+                log.info("%s: source finished", d.name)
+                self.stop_event.wait()
+                break
             block = d.source.read(timeout=0.2)
-            if block is not None:
+            if block is None:
+                continue
+            if not lossless:  # a live link: a slow pipeline loses the oldest blocks, never the link
                 d.dropped += put_drop_oldest(d.blocks, block)
+                continue
+            while not self.stop_event.is_set():  # a file played as fast as the pipeline takes it
+                try:
+                    d.blocks.put(block, timeout=0.2)
+                    break
+                except queue.Full:
+                    continue
 
     def _publish(self, status: DriveStatus) -> None:
         for sink in self.sinks:

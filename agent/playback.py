@@ -1,32 +1,40 @@
 """Sources that play records: recorded files (CSV/NPZ/TDMS) and the embedded simulated drive.
 
-Both cut records into blocks of ``block_s`` and pace them at ``speedup`` x real time
-(``speedup = 0``: as fast as the reader takes them). Consecutive records are separate streams:
-``Block.first_sample`` jumps between them so the pipeline restarts its windows, exactly as it
-does after a gap on a real link.
+They live beside the records (:mod:`agent.records`), not among the transports: they read files,
+not links. Both cut records into blocks of ``block_s`` and pace them at ``speedup`` x real time;
+``speedup = 0`` plays as fast as the pipeline takes them, and such a source is ``lossless``: the
+service waits for the pipeline instead of dropping blocks (a live link never waits). Files are
+streamed from disk a chunk at a time (:func:`agent.records.stream_record`), so a day of records
+costs one chunk of memory. Consecutive records are separate streams: ``Block.first_sample``
+jumps between them so the pipeline restarts its windows, exactly as it does after a gap on a
+real link. A finished source reports ``finished`` (the service then idles, it does not spin).
 """
 
 from __future__ import annotations
 
 import itertools
 import logging
+
+import numpy as np
 import time
 from collections.abc import Callable, Iterable, Iterator
 
-from agent.records import Record, load_record
+from agent.records import Record, stream_record
 from protocols.base import Block, SourceStats
 
 log = logging.getLogger(__name__)
 
 
 class RecordSource:
-    """Plays an iterable of records as blocks of one drive."""
+    """Plays records as blocks of one drive: ``records()`` yields, per record, an iterable of its
+    consecutive chunks (:class:`Record` s; one chunk for a record held in memory)."""
 
-    def __init__(self, name: str, drive: str, records: Callable[[], Iterable[Record]], rate_hz: float,
+    def __init__(self, name: str, drive: str, records: Callable[[], Iterable[Iterable[Record]]], rate_hz: float,
                  block_s: float = 0.1, speedup: float = 1.0):
         self.name, self.drive, self.rate_hz = name, drive, rate_hz
         self.block = max(1, int(round(block_s * rate_hz)))
         self.speedup = speedup
+        self.lossless = speedup == 0  #: as fast as the pipeline takes it: wait, never drop
         self._records = records
         self.stats = SourceStats()
         self._blocks: Iterator[Block] | None = None
@@ -40,14 +48,24 @@ class RecordSource:
 
     def _generate(self) -> Iterator[Block]:
         first = 0
-        for rec in self._records():
-            for start in range(0, rec.n - self.block + 1, self.block):
-                cut = slice(start, start + self.block)
-                yield Block(self.drive, self.rate_hz, rec.v_abc[:, cut], rec.i_abc[:, cut], first + start,
-                            self.stats.blocks,
-                            None if rec.theta_e is None else rec.theta_e[cut],
-                            None if rec.omega_e is None else rec.omega_e[cut])
-            first += rec.n + self.block  # a jump: the next record is a new stream
+        for chunks in self._records():
+            pending, pos = None, first  # samples carried to the next chunk (less than a block)
+            for rec in chunks:
+                rows = [rec.v_abc, rec.i_abc] + [x[None, :] for x in (rec.theta_e, rec.omega_e) if x is not None]
+                data = np.vstack(rows)
+                if pending is not None:
+                    data = np.hstack((pending, data))
+                n = data.shape[1] - data.shape[1] % self.block
+                for start in range(0, n, self.block):
+                    yield self._block(data[:, start:start + self.block], pos, rec.theta_e is not None,
+                                      rec.omega_e is not None)
+                    pos += self.block
+                pending = data[:, n:]
+            first = pos + self.block  # a jump: the next record is a new stream
+
+    def _block(self, data: np.ndarray, first: int, theta: bool, omega: bool) -> Block:
+        return Block(self.drive, self.rate_hz, data[0:3], data[3:6], first, self.stats.blocks,
+                     data[6] if theta else None, data[6 + theta] if omega else None)
 
     def read(self, timeout: float) -> Block | None:
         if self._blocks is None:
@@ -78,12 +96,14 @@ class RecordSource:
 
 
 def replay_source(files: list[str], drive: str, profile, *, block_s: float = 0.1, speedup: float = 1.0,
-                  loop: bool = False) -> RecordSource:
-    """Replay recorded files (validated against ``profile``), once or in a loop."""
+                  loop: bool = False, chunk_s: float = 1.0) -> RecordSource:
+    """Replay recorded files (validated against ``profile`` chunk by chunk), once or in a loop."""
+    chunk = max(1, int(round(chunk_s * profile.sampling.rate_hz)))
+
     def records():
         paths = itertools.cycle(files) if loop else files
         for path in paths:
-            yield load_record(path, profile)
+            yield stream_record(path, profile, chunk)
     return RecordSource(f"replay:{drive}", drive, records, profile.sampling.rate_hz, block_s, speedup)
 
 
@@ -103,6 +123,6 @@ def simulated_source(profile, schedule: list[tuple], drive: str = "drive1", *, l
             left = seconds
             while left > 1e-9:
                 part = min(segment_s, left)
-                yield simulate(profile, condition, load, part, seed=next(seeds), severity=severity)
+                yield [simulate(profile, condition, load, part, seed=next(seeds), severity=severity)]
                 left -= part
     return RecordSource(f"simulated:{drive}", drive, records, profile.sampling.rate_hz, block_s, speedup)
