@@ -17,12 +17,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from agent.errors import InputError
 from agent.evidence import EvidenceStats, Feature, feature_values, make_features
 from agent.identify import (PREFILTER_HZ, FitResult, cluster_point, constrain, fit_record, operating_point,
                             psi_m_prior, record_signals, refine_output_error)
 from agent.model import DQModel, Signals
 from agent.profile import DriveProfile
 from agent.records import Record
+from agent.sanity import not_running
 from agent.spectrum import amplitude_spectrum, envelope
 
 WINDOW_S = 2.0  #: residual-spectrum window, s (0.5 Hz resolution)
@@ -289,6 +291,9 @@ def identify_baseline(records: list[Record], profile: DriveProfile, *, refine: b
         if progress:
             progress(j, 2 * m, f"identify {rec.source}")
         sigs.append(record_signals(rec, profile))
+        idle = not_running(sigs[-1], profile)
+        if idle is not None:
+            raise InputError(f"{idle}: not a healthy record of a running drive", source=rec.source)
         builder.add_fit(sigs[-1], rec.source)
     if refine:
         builder.set_model(refine_output_error(builder.model(), sigs))

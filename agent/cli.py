@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from agent.cliargs import Parser, fraction, number, quiet_broken_pipe
 from agent.errors import InputError
 
 log = logging.getLogger("pmsm-agent")
@@ -112,7 +113,10 @@ def cmd_identify(args) -> None:
     from agent.profile import load_profile
 
     profile = load_profile(args.profile)
-    recs = _load_records(args.data, profile, min_samples=int(args.window * profile.sampling.rate_hz) + 2)
+    if len(args.data) < 4:
+        raise InputError(f"identify needs at least 4 healthy records (the parameter cluster's region), got "
+                         f"{len(args.data)}")
+    recs = _load_records(args.data, profile, min_samples=int(round(args.window * profile.sampling.rate_hz)))
     t0 = time.perf_counter()
     base = identify_baseline(recs, profile, form=args.form, robust=args.robust, window_s=args.window,
                              confidence=args.confidence, region=args.region, spectrum_rule=args.spectrum_rule,
@@ -142,10 +146,13 @@ def cmd_diagnose(args) -> None:
 
     base = load_baseline(args.model)
     recs = _load_records(args.data, base.profile,
-                         min_samples=int(base.thresholds.window_s * base.profile.sampling.rate_hz) + 2)
+                         min_samples=int(round(base.thresholds.window_s * base.profile.sampling.rate_hz)))
     results = [diagnose(base, r).to_json() for r in recs]
     lines = []
     for r in results:
+        if r["quality"] != "good":
+            lines.append(f"{r['record']}: no diagnosis ({r['quality']}): {r['reason']}")
+            continue
         peaks = ", ".join(f"{p['freq_hz']:.1f} Hz {p['family']} k={p['k']} {p['level']}" for p in r["peaks"])
         lines.append(f"{r['record']}: {r['state'].upper()} (spectrum {r['spectrum_state']}, cluster "
                      f"{r['cluster_state']}, d2 {r['cluster']['distance2']:.1f}/{r['cluster']['limit']:.1f})"
@@ -171,7 +178,7 @@ def build_parser() -> argparse.ArgumentParser:
     common.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
     common.add_argument("-v", "--verbose", action="store_true", help="log progress to stderr")
 
-    p = argparse.ArgumentParser(prog="pmsm-agent", description="Model-based transmission-fault detection for "
+    p = Parser(prog="pmsm-agent", description="Model-based transmission-fault detection for "
                                 "PMSM drives: simulate, identify, diagnose, the model workbench and the agent service.")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -180,19 +187,22 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--condition", default="healthy", help="healthy or a fault condition of the profile's transmission")
     s.add_argument("--effect", action="append", metavar="ID[=VALUE]",
                    help="add a physical effect (repeatable), e.g. inverter_deadtime=8")
-    s.add_argument("--load", type=float, default=80.0, help="load, %% of rated (default 80)")
-    s.add_argument("--seconds", type=float, default=4.0, help="record length, s (default 4)")
-    s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    s.add_argument("--count", type=int, default=1, help="write COUNT records with seeds SEED.. (suffix _SEED)")
-    s.add_argument("--severity", type=float, default=1.0, help="scale of the fault (default 1)")
+    s.add_argument("--load", type=number(0, 130, unit="%"), default=80.0, help="load, %% of rated torque (default 80)")
+    s.add_argument("--seconds", type=number(0, 120, low_open=True, unit="s"), default=4.0,
+                   help="record length, s (default 4)")
+    s.add_argument("--seed", type=number(0, 2**63 - 1, integer=True), default=0, help="random seed (default 0)")
+    s.add_argument("--count", type=number(1, 10_000, integer=True), default=1,
+                   help="write COUNT records with seeds SEED.. (suffix _SEED)")
+    s.add_argument("--severity", type=number(0, 100), default=1.0, help="scale of the fault (default 1)")
     s.add_argument("--encoder", action="store_true", help="include theta_e/omega_e columns (drive encoder)")
     s.add_argument("--out", required=True, help="output record (.csv, .npz or .tdms)")
     s.set_defaults(func=cmd_simulate)
 
     s = sub.add_parser("frequencies", parents=[common], help="fault characteristic frequencies (eqs. 19-22)")
     s.add_argument("--profile", required=True)
-    s.add_argument("--fe", type=float, help="electrical frequency, Hz (default: rated speed)")
-    s.add_argument("--k", type=int, default=3, help="sideband orders 1..K (default 3)")
+    s.add_argument("--fe", type=number(0, 1e5, low_open=True, unit="Hz"),
+                   help="electrical frequency, Hz (default: rated speed)")
+    s.add_argument("--k", type=number(1, 100, integer=True), default=3, help="sideband orders 1..K (default 3)")
     s.set_defaults(func=cmd_frequencies)
 
     s = sub.add_parser("identify", parents=[common], help="learn a healthy baseline from records (Algs. 2-4)")
@@ -201,11 +211,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--form", choices=("lumped", "speed"), default="lumped",
                    help="regression form: paper eqs. 13-14 (lumped) or omega_e as a regressor (speed)")
     s.add_argument("--robust", action="store_true", help="median/MAD instead of mean/std")
-    s.add_argument("--window", type=float, default=2.0, help="residual-spectrum window, s (default 2)")
-    s.add_argument("--confidence", type=float, default=0.95, help="parameter-cluster region (default 0.95)")
+    s.add_argument("--window", type=number(0.1, 60, unit="s"), default=2.0,
+                   help="residual-spectrum window, s (default 2)")
+    s.add_argument("--confidence", type=fraction, default=0.95,
+                   help="parameter-cluster region, a fraction (default 0.95)")
     s.add_argument("--region", choices=("prediction", "chi2"), default="prediction",
                    help="cluster region: Hotelling prediction ellipse (default) or chi-square")
-    s.add_argument("--prefilter", type=float, metavar="HZ",
+    s.add_argument("--prefilter", type=number(0, 1e5, low_open=True, unit="Hz"), metavar="HZ",
                    help="low-pass both sides of the regressions at HZ (removes current-sensor noise bias)")
     s.add_argument("--spectrum-rule", choices=("pair", "line"), default="pair",
                    help="a fault needs both sidebands fe -+ k f above threshold (pair, default) or one line (line)")
@@ -221,12 +233,20 @@ def build_parser() -> argparse.ArgumentParser:
         importlib.import_module(module).add_commands(sub, common)
 
     s = sub.add_parser("demo", parents=[common], help="the embedded demo (simulated drive, healthy then faulty)")
-    s.add_argument("--seconds", type=float, default=60.0, help="wall-time limit, s (default and at most 60)")
+    s.add_argument("--seconds", type=number(0, 60, low_open=True, unit="s"), default=60.0,
+                   help="wall-time limit, s (default and at most 60)")
     s.set_defaults(func=cmd_demo)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
+    try:
+        return _main(argv)
+    except BrokenPipeError:
+        return quiet_broken_pipe()
+
+
+def _main(argv: list[str] | None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, stream=sys.stderr,
                         format="%(levelname)s %(name)s: %(message)s")
@@ -237,6 +257,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:
+        raise
     except Exception:  # a bug: say so, with the traceback, and exit 1
         log.exception("internal error")
         return 1

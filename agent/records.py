@@ -126,6 +126,7 @@ def save_record(record: Record, path: str | Path) -> Path:
     path = Path(path)
     writer = _WRITERS[_suffix(path)]
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
         writer(record, path)
     except OSError as err:
         raise InputError(f"cannot write record: {err.strerror or err}", source=str(path)) from err

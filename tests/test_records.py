@@ -151,9 +151,11 @@ def test_missing_file(tmp_path, fmt):
         load_record(tmp_path / f"nope.{fmt}")
 
 
-def test_save_unwritable(tmp_path):
-    with raises("no/such/dir/r.npz: cannot write record"):
-        save_record(make_record(), tmp_path / "no/such/dir/r.npz")
+def test_save_creates_folders_and_reports_unwritable_ones(tmp_path):
+    assert load_record(save_record(make_record(), tmp_path / "new/dir/r.npz")).n == 500
+    (tmp_path / "file").write_text("")
+    with raises("file/dir/r.npz: cannot write record"):  # a file where a folder should be
+        save_record(make_record(), tmp_path / "file/dir/r.npz")
 
 
 @pytest.mark.parametrize("fmt, content, match", [

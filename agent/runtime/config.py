@@ -61,9 +61,9 @@ class Phase:
     """One step of a simulated drive's condition schedule."""
 
     condition: str
-    seconds: float = _opt(gt=0)  #: simulated time spent in this condition, s
+    seconds: float = _opt(gt=0, le=30 * 86400)  #: simulated time spent in this condition, s
     load_pct: float | None = _opt(None, ge=0, le=150)  #: overrides the source's ``load_pct``
-    severity: float = _opt(1.0, ge=0)
+    severity: float = _opt(1.0, ge=0, le=100)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -73,7 +73,7 @@ class SimulatedCfg:
     kind: str = "simulated"
     schedule: tuple[Phase, ...] = (Phase(condition="healthy", seconds=3600.0),)
     load_pct: float = _opt(80.0, ge=0, le=150)
-    speedup: float = _opt(1.0, gt=0)  #: simulated seconds per wall second
+    speedup: float = _opt(1.0, gt=0, le=10_000)  #: simulated seconds per wall second
     seed: int = _opt(0, ge=0)
     block_s: float = _opt(0.1, gt=0, le=2.0)  #: block length handed to the pipeline, s
     loop: bool = True  #: repeat the schedule; else the source goes stale at its end
@@ -85,7 +85,7 @@ class ReplayCfg:
 
     kind: str = "replay"
     files: tuple[Path, ...] = _opt()
-    speedup: float = _opt(1.0, ge=0)  #: 1 = real time, 0 = as fast as the pipeline takes it
+    speedup: float = _opt(1.0, ge=0, le=10_000)  #: 1 = real time, 0 = as fast as the pipeline takes it
     loop: bool = False
     block_s: float = _opt(0.1, gt=0, le=2.0)
 
@@ -96,8 +96,8 @@ class SerialCfg:
 
     kind: str = "serial"
     port: str = _opt()  #: e.g. /dev/ttyUSB0 or a pyserial URL
-    baud: int = _opt(921_600, gt=0)
-    read_timeout_s: float = _opt(0.2, gt=0)
+    baud: int = _opt(921_600, gt=0, le=20_000_000)
+    read_timeout_s: float = _opt(0.2, gt=0, le=60)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -110,8 +110,8 @@ class CanCfg:
     base_id: int = _opt(0x0A500000, ge=0, le=0x1FFFFFFF)  #: first id of the drive's block (firmware_if.can_frame)
     fd: bool = True
     extended: bool = True  #: the sample frames use 29-bit ids
-    bitrate: int | None = _opt(None, gt=0)  #: only for interfaces that set it (SocketCAN ignores it)
-    data_bitrate: int | None = _opt(None, gt=0)
+    bitrate: int | None = _opt(None, gt=0, le=10_000_000)  #: only for interfaces that set it (SocketCAN ignores it)
+    data_bitrate: int | None = _opt(None, gt=0, le=20_000_000)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -122,11 +122,11 @@ class ModbusCfg:
     host: str | None = None
     port: int = _opt(502, ge=1, le=65535)
     serial_port: str | None = None
-    baud: int = _opt(19_200, gt=0)
+    baud: int = _opt(19_200, gt=0, le=20_000_000)
     unit_id: int = _opt(1, ge=0, le=247)
     address: int = _opt(0, ge=0, le=65535)  #: first register of the drive's sample block
-    poll_interval_s: float = _opt(0.1, gt=0)
-    timeout_s: float = _opt(1.0, gt=0)
+    poll_interval_s: float = _opt(0.1, gt=0, le=3600)
+    timeout_s: float = _opt(1.0, gt=0, le=600)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -136,11 +136,11 @@ class NidaqCfg:
     kind: str = "nidaq"
     voltage_channels: str = _opt()  #: e.g. cDAQ1Mod1/ai0:2 (phases a, b, c)
     current_channels: str = _opt()  #: e.g. cDAQ1Mod2/ai0:2
-    voltage_range_v: float = _opt(800.0, gt=0)
-    current_range_v: float = _opt(10.0, gt=0)
-    current_scale_a_per_v: float = _opt(1.0, gt=0)
-    rate_hz: float | None = _opt(None, gt=0)  #: default: the profile's sampling.rate_hz
-    block_samples: int = _opt(2500, gt=0)
+    voltage_range_v: float = _opt(800.0, gt=0, le=2000)
+    current_range_v: float = _opt(10.0, gt=0, le=100)
+    current_scale_a_per_v: float = _opt(1.0, gt=0, le=1e6)
+    rate_hz: float | None = _opt(None, gt=0, le=1e7)  #: default: the profile's sampling.rate_hz
+    block_samples: int = _opt(2500, gt=0, le=1_000_000)
 
 
 SourceCfg = SimulatedCfg | ReplayCfg | SerialCfg | CanCfg | ModbusCfg | NidaqCfg
@@ -159,11 +159,11 @@ class DriveCfg:
 
 @dataclass(frozen=True, kw_only=True)
 class PipelineCfg:
-    window_s: float = _opt(2.0, gt=0)  #: analysis window, s
-    hop_s: float = _opt(1.0, gt=0)  #: assessment period, s (divides window_s)
-    persist_hops: int = _opt(1, ge=1)  #: consecutive assessments needed to raise an alarm level
-    alarm_hold_s: float = _opt(10.0, ge=0)  #: a raised state is held this long before it may fall
-    stale_after_s: float = _opt(3.0, gt=0)  #: no input for this long -> quality "stale"
+    window_s: float = _opt(2.0, ge=0.1, le=60)  #: analysis window, s
+    hop_s: float = _opt(1.0, ge=0.01, le=60)  #: assessment period, s (divides window_s)
+    persist_hops: int = _opt(1, ge=1, le=1000)  #: consecutive assessments needed to raise an alarm level
+    alarm_hold_s: float = _opt(10.0, ge=0, le=86400)  #: a raised state is held this long before it may fall
+    stale_after_s: float = _opt(3.0, gt=0, le=3600)  #: no input for this long -> quality "stale"
     learn_windows: int = _opt(30, ge=4, le=10000)  #: spans fitting a new baseline's parameters (pass 1)
     learn_stretches: int = _opt(40, ge=4, le=100000)  #: independent stretches of its alarm statistics (pass 2)
     learn_min_s: float = _opt(1200.0, ge=0, le=30 * 86400)  #: s of operation pass 2 covers at least
@@ -172,8 +172,8 @@ class PipelineCfg:
     false_alarms_per_month: float = _opt(0.1, gt=0, le=100)  #: design budget of the slow-wear path per drive
     gross_z: float = _opt(8.0, gt=2, le=1000)  #: prediction sds above healthy for an immediate warning
     auto_learn: bool = True  #: first commissioning: learn once when the drive has no baseline at all
-    schedule_fe_tol_hz: float = _opt(2.0, gt=0)  #: a baseline applies within this fe distance
-    schedule_load_tol_pct: float = _opt(5.0, gt=0)  #: ... and this load distance (input power, % of rated)
+    schedule_fe_tol_hz: float = _opt(2.0, gt=0, le=1000)  #: a baseline applies within this fe distance
+    schedule_load_tol_pct: float = _opt(5.0, gt=0, le=100)  #: ... and this load distance (input power, % of rated)
     schedule_hysteresis: float = _opt(0.2, ge=0, le=1)  #: extra fraction of the tolerance to leave a baseline
 
 
@@ -195,8 +195,8 @@ class ZenohCfg:
     prefix: str = _opt("pmsm", check=_key_expr)
     config_file: Path | None = _opt(None)  #: JSON5 zenoh config read first
     inline: dict = _opt({})  #: extra zenoh keys, ``{"transport/link/tx/lease" = 3000}``
-    period_s: float = _opt(1.0, gt=0)  #: state republish period, s
-    diagnostics_period_s: float = _opt(5.0, gt=0)
+    period_s: float = _opt(1.0, gt=0, le=3600)  #: state republish period, s
+    diagnostics_period_s: float = _opt(5.0, gt=0, le=86400)
 
 
 @dataclass(frozen=True, kw_only=True)

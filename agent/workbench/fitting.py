@@ -44,7 +44,9 @@ from scipy.signal import butter, sosfiltfilt
 
 from agent.effects import get as get_effect
 from agent.frames import CLARKE
+from agent.errors import InputError
 from agent.identify import operating_point, record_signals
+from agent.sanity import not_running
 from agent.kernels import simulate_ltv
 from agent.model import BASE_TERMS, DQModel, Signals, lumped_params, nrmse, regressors
 from agent.profile import DriveProfile
@@ -91,6 +93,9 @@ def prepare(records: list[Record], profile: DriveProfile, max_fit_s: float = 0.5
     rate = profile.sampling.rate_hz
     for rec in records:
         sig = record_signals(rec, profile)
+        idle = not_running(sig, profile)
+        if idle is not None:
+            raise InputError(f"{idle}: nothing to compare a model with", source=rec.source)
         if rec.theta_e is None:
             sig = follow_current(sig, rec).slice(int(SETTLE_S * rate), sig.n)
         split = min(int(FIT_FRACTION * sig.n), int(max_fit_s * rate))
