@@ -5,7 +5,8 @@ Key space under ``prefix`` (e.g. ``pmsm/demo``; CONTRACT section 6):
 =====================================  =======================================================
 ``<prefix>/<drive>/state``             JSON on change (BLOCK, express, REAL_TIME) and every
                                        ``period_s`` (DROP); ``DriveStatus.to_json()`` plus
-                                       ``state_code``, ``quality_code``, ``agent``, ``boot_id``, ``seq``
+                                       ``schema`` (:data:`SCHEMA_VERSION`), ``state_code``,
+                                       ``quality_code``, ``agent``, ``boot_id``, ``seq``
 ``<prefix>/<drive>/diagnostics``       JSON every ``diagnostics_period_s`` (DROP)
 ``<prefix>/agent/<agent_id>/health``   JSON every ``diagnostics_period_s`` (DROP); also a queryable
 ``<prefix>/agent/<agent_id>/alive``    liveliness token (DELETE when the agent stops or dies)
@@ -51,6 +52,10 @@ import zenoh
 from protocols.base import QUALITY_CODES, STATE_CODES, DriveStatus, OpenClose
 from protocols.streaming import put_drop_oldest
 
+#: Version of the JSON payloads (the ``schema`` field). 2: adds ``reason``, ``evidence``, ``settling``
+#: and ``learn_progress_pct`` (the alarm logic, docs/method.md "Alarms") and the field itself;
+#: a payload without ``schema`` is version 1.
+SCHEMA_VERSION = 2
 log = logging.getLogger(__name__)
 
 QUERY_TOPICS = ("model", "spectrum", "thresholds", "events")
@@ -303,7 +308,8 @@ class ZenohSink(OpenClose):
         if d.pub is None and not self._guard("declare", self._declare_drive, drive):
             return
         d.seq += 1
-        payload = json.dumps({**doc, "agent": self.agent_id, "boot_id": self.boot_id, "seq": d.seq}, default=str)
+        payload = json.dumps({"schema": SCHEMA_VERSION, **doc, "agent": self.agent_id, "boot_id": self.boot_id,
+                              "seq": d.seq}, default=str)
         if change:
             ok = self._guard("put state", d.pub.put, payload)
             self.stats.changes += ok

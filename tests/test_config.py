@@ -41,6 +41,16 @@ def test_shipped_default_is_valid(monkeypatch):
     assert cfg.state_dir == Path("state").resolve() and cfg.library.path == cfg.state_dir / "library"
 
 
+def test_default_zenoh_prefix_names_the_host(tmp_path):
+    """Two gateways left at the default must not share a key space."""
+    import socket
+
+    cfg = check_config(write(tmp_path, BASE))
+    host = socket.gethostname().lower()
+    assert cfg.zenoh.prefix.startswith("pmsm/") and cfg.zenoh.prefix != "pmsm/demo"
+    assert cfg.zenoh.prefix == f"pmsm/{cfg.agent_id}" and (host[:3] in cfg.zenoh.prefix or cfg.agent_id == "agent")
+
+
 def test_shipped_default_passes_check_config_cli():
     r = subprocess.run([sys.executable, "-m", "agent.cli", "run", "--check-config", str(DEFAULT_CONFIG)],
                        cwd=ROOT, capture_output=True, text=True, timeout=60)

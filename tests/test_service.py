@@ -388,3 +388,26 @@ enabled = false
         assert d.monitor.config.stale_after_s >= 3.0 + span_s  # at least the next capture's duration
     finally:
         service.journal.close()
+
+
+def test_status_line_is_live(run):
+    """systemctl status shows what the agent is doing: drive, state/quality, learning, windows/s."""
+    lines = [line[len("STATUS="):] for _, item in run["notify"] for line in item if line.startswith("STATUS=")]
+    live = [s for s in lines if "win/s" in s]
+    assert live and all(s.startswith(f"{DRIVE} ") for s in live), lines
+    assert any("learning" in s and "%" in s for s in live) or any("normal/good" in s for s in live), live
+
+
+def test_every_transition_is_one_structured_line(run, caplog):
+    from agent.runtime.service import transition_line
+
+    detail = {"from": "normal", "to": "warning", "model": "b80", "fe_hz": 100.0, "load_pct": 92.1,
+              "reason": {"path": "gross", "feature": "gear_driven k=1", "z": 13.4, "threshold": 8.0,
+                         "freqs_hz": [87.5, 112.5]}}
+    line = transition_line(DRIVE, "state", detail)
+    assert line == (f"drive={DRIVE} state=normal->warning model=b80 fe_hz=100.00 load_pct=92.10 path=gross "
+                    "feature=gear_driven_k=1 z=13.4/8.0 lines_hz=87.5,112.5")
+    with caplog.at_level("INFO", logger="pmsm-agent.transitions"):
+        run["service"]._event(DRIVE, "quality", {"from": "good", "to": "no_model", "reason": "not running: fe 0"})
+    (rec,) = [r for r in caplog.records if r.name == "pmsm-agent.transitions"]
+    assert rec.getMessage() == f'drive={DRIVE} quality=good->no_model reason="not running: fe 0"'

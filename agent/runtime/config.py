@@ -192,7 +192,7 @@ class ZenohCfg:
     mode: str = _opt("peer", choices=("peer", "client", "router"))
     listen: tuple[str, ...] = _opt((), check=_endpoint)
     connect: tuple[str, ...] = _opt((), check=_endpoint)
-    prefix: str = _opt("pmsm", check=_key_expr)
+    prefix: str = _opt("", check=lambda v: None if v == "" else _key_expr(v))  #: default pmsm/<host name>
     config_file: Path | None = _opt(None)  #: JSON5 zenoh config read first
     inline: dict = _opt({})  #: extra zenoh keys, ``{"transport/link/tx/lease" = 3000}``
     period_s: float = _opt(1.0, gt=0, le=3600)  #: state republish period, s
@@ -361,7 +361,8 @@ def _validate(cfg: Config) -> Config:
         raise _KeyError("state_dir", f"{state_dir} exists and is not a directory")
     library = replace(cfg.library, path=cfg.library.path or state_dir / "library")
     return replace(cfg, drives=tuple(drives), state_dir=state_dir, library=library,
-                   agent_id=cfg.agent_id or _default_agent_id())
+                   agent_id=cfg.agent_id or _default_agent_id(),
+                   zenoh=replace(cfg.zenoh, prefix=cfg.zenoh.prefix or f"pmsm/{_default_agent_id()}"))
 
 
 def _load_profile(d: DriveCfg, kp: str):

@@ -35,6 +35,31 @@ from protocols.base import Block, DriveStatus, Sink, Source
 from protocols.streaming import put_drop_oldest
 
 log = logging.getLogger("pmsm-agent.service")
+#: one line per state or quality change on stderr, whatever the log level (journald keeps it)
+transitions_log = logging.getLogger("pmsm-agent.transitions")
+transitions_log.setLevel(logging.INFO)
+STATUS_PERIOD_S = 5.0  #: the sd_notify STATUS line is refreshed this often
+
+
+def transition_line(drive: str, kind: str, detail: dict) -> str:
+    """One structured line for a state or quality change: ``key=value`` pairs, the reason last."""
+    parts = [f"drive={drive}", f"{kind}={detail.get('from')}->{detail.get('to')}"]
+    for key in ("model", "fe_hz", "load_pct"):
+        value = detail.get(key)
+        if value not in (None, "") and value == value:
+            parts.append(f"{key}={value:.2f}" if isinstance(value, float) else f"{key}={value}")
+    reason = detail.get("reason")
+    if isinstance(reason, dict):
+        parts += [f"path={reason.get('path')}", f"feature={str(reason.get('feature', '')).replace(' ', '_')}"]
+        if "z" in reason:
+            parts.append(f"z={reason['z']}/{reason.get('threshold')}")
+        if "evidence" in reason:
+            parts.append(f"evidence={reason['evidence']}/{reason.get('threshold')}")
+        if reason.get("freqs_hz"):
+            parts.append("lines_hz=" + ",".join(f"{f:g}" for f in reason["freqs_hz"][:2]))
+    elif reason:
+        parts.append(f'reason="{reason}"')
+    return " ".join(parts)
 
 QUEUE_BLOCKS = 64  #: per drive, ~6 s of 0.1 s blocks
 OPEN_WAIT_S = 10.0  #: READY waits at most this long for each source's first open
@@ -99,6 +124,7 @@ class DriveRuntime:
     gaps: int = 0
     first_open: threading.Event = field(default_factory=threading.Event)
     auto_learned: bool = False
+    windows_seen: int = 0  #: status.window at the last STATUS line
     reader: threading.Thread | None = None
 
 
@@ -143,6 +169,9 @@ class Service:
 
     # -- events and queries ---------------------------------------------------------------------
     def _event(self, drive: str, kind: str, detail: dict) -> None:
+        if kind in ("state", "quality"):
+            transitions_log.log(logging.WARNING if detail.get("to") in ("caution", "warning") else logging.INFO,
+                                "%s", transition_line(drive, kind, detail))
         if kind in ("learning", "learned", "learning_refused"):
             self.journal.record("learning", drive, detail={"event": kind, **detail})
         elif kind == "gap":  # counted, not journalled: snapshot sources make one per snapshot
@@ -249,6 +278,20 @@ class Service:
                     d.monitor.start_learning(f"{d.name}_{status.fe_hz:.0f}hz_{status.load_pct:.0f}pct")
         return busy
 
+    def status_line(self, period_s: float) -> str:
+        """What ``systemctl status`` shows: per drive its state, quality and learning progress,
+        and the windows assessed per second over the last ``period_s``."""
+        items = []
+        for d in self.drives.values():
+            st = d.monitor.status
+            text = f"{d.name} {st.state}/{st.quality}"
+            if d.monitor.learning:
+                text += f" learning {d.monitor.learn_progress_pct:.0f}%"
+            rate = (st.window - d.windows_seen) / max(period_s, 1e-3)
+            d.windows_seen = st.window
+            items.append(f"{text} {rate:.1f} win/s")
+        return "; ".join(items)
+
     def _auto_learn_due(self, d: "DriveRuntime", status: DriveStatus) -> bool:
         """First commissioning only: with ``auto_learn``, a running drive with no baseline of its own
         in the library starts learning once per run. It never learns again by itself (a second
@@ -287,6 +330,8 @@ class Service:
                 d.first_open.wait(timeout=OPEN_WAIT_S)
             down = [d.name for d in self.drives.values() if d.source.stats.last_error]
             sdnotify.ready(f"monitoring {len(self.drives)} drive(s)" + (f"; not connected: {', '.join(down)}" if down else ""))
+            last_status = time.monotonic()
+            next_status = last_status + 1.0  # the first live line soon after READY
             while not self.stop_event.is_set():
                 if t_end is not None and time.monotonic() > t_end:
                     break
@@ -296,6 +341,10 @@ class Service:
                     self.journal.record("reload", detail={"library": sorted(self.library.baselines)})
                     sdnotify.notify("READY=1", "STATUS=library reloaded")
                 busy = self._dsp_step()
+                if time.monotonic() >= next_status:
+                    last_status = time.monotonic()
+            next_status = last_status + 1.0  # the first live line soon after READY
+                    sdnotify.status(self.status_line(STATUS_PERIOD_S))
                 self._commands()
                 watchdog.ping()
                 if not busy:
