@@ -342,9 +342,8 @@ class Service:
                     sdnotify.notify("READY=1", "STATUS=library reloaded")
                 busy = self._dsp_step()
                 if time.monotonic() >= next_status:
-                    last_status = time.monotonic()
-            next_status = last_status + 1.0  # the first live line soon after READY
-                    sdnotify.status(self.status_line(STATUS_PERIOD_S))
+                    sdnotify.status(self.status_line(time.monotonic() - last_status))
+                    last_status, next_status = time.monotonic(), time.monotonic() + STATUS_PERIOD_S
                 self._commands()
                 watchdog.ping()
                 if not busy:
