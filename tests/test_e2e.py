@@ -40,6 +40,7 @@ import pytest
 import zenoh
 
 from agent.modelfile import save_baseline
+from firmware_if import plc_registers
 from protocols.zenoh_sink import zenoh_config
 from runtime_support import (PROFILE_PATH, RATE, ROOT, PlcPoller, Samples, condition_stream, free_port,
                              healthy_baseline, sim, wait_for)
@@ -264,7 +265,7 @@ def test_drive_to_plc_and_zenoh(transport, tmp_path, drive_records, full_form):
         assert good[0]["state"] == "normal" and abs(good[0]["fe_hz"] - 100.0) < 1.0
         assert {"state", "quality", "spectrum_state", "cluster_state", "fe_hz", "load_pct", "t"} <= good[0].keys()
         g = plc.reads[-1][1]
-        assert g[0] == 1 and g[2] == 1
+        assert g[0] == plc_registers.MAP_VERSION and g[2] == 1
 
         # 2. the fault: caution or warning on both channels (the full form first streams 20 s more
         # of healthy data: no false alarm meanwhile, checked below)
