@@ -411,3 +411,16 @@ def test_every_transition_is_one_structured_line(run, caplog):
         run["service"]._event(DRIVE, "quality", {"from": "good", "to": "no_model", "reason": "not running: fe 0"})
     (rec,) = [r for r in caplog.records if r.name == "pmsm-agent.transitions"]
     assert rec.getMessage() == f'drive={DRIVE} quality=good->no_model reason="not running: fe 0"'
+
+
+def test_status_command_reads_the_journal(run, capsys):
+    from agent.cli import main
+
+    assert main(["status", "--json", "--config", str(run["cfg"].source)]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["agent"] == "stopped"
+    (d,) = doc["drives"]
+    assert d["drive"] == DRIVE and d["state"] == "normal" and d["quality"] in ("good", "learning", "no_model")
+    assert main(["status", "--config", str(run["cfg"].source)]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("agent stopped since ") and f"{DRIVE}: NORMAL (quality " in out

@@ -52,6 +52,53 @@ def cmd_events(args) -> None:
         print(f"no events in {path}", file=sys.stderr)
 
 
+def cmd_status(args) -> None:
+    """Each drive's current state and quality, from the journal (the last change), and whether the
+    agent that wrote it is running (its last start/stop event)."""
+    from agent.runtime.config import check_config
+    from agent.runtime.journal import Journal, journal_path
+
+    cfg = check_config(args.config)
+    path = journal_path(cfg.state_dir)
+    if not path.is_file():
+        raise InputError(f"no journal at {path}: the agent has not run with this config yet", source=str(args.config))
+    now = time.time()
+    with Journal(path, readonly=True) as j:
+        life = j.recent(None, kinds=["start", "stop"], limit=1)
+        drives = []
+        for d in cfg.drives:
+            last = j.recent(d.name, kinds=["state", "quality"], limit=1)
+            e = last[0] if last else None
+            reason = (e["detail"] or {}).get("reason") if e else None
+            drives.append({"drive": d.name, "state": e["state"] if e else None, "quality": e["quality"] if e else None,
+                           "since": e["t"] if e else None, "age_s": round(now - e["t"], 1) if e else None,
+                           "reason": reason})
+    agent = "never started" if not life else ("running" if life[0]["kind"] == "start" else "stopped")
+    if args.json:
+        json.dump({"journal": str(path), "agent": agent, "agent_since": life[0]["t"] if life else None,
+                   "drives": drives}, sys.stdout)
+        sys.stdout.write("\n")
+        return
+    when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(life[0]["t"])) if life else ""
+    print(f"agent {agent}" + (f" since {when}" if when else "") + f" (journal {path})")
+    for d in drives:
+        if d["state"] is None:
+            print(f"{d['drive']}: no state recorded yet")
+            continue
+        why = d["reason"]
+        why = why if isinstance(why, str) else " ".join(f"{k}={v}" for k, v in (why or {}).items()
+                                                       if k in ("path", "feature", "z", "evidence", "threshold"))
+        print(f"{d['drive']}: {str(d['state']).upper()} (quality {d['quality']}) for {_age(d['age_s'])}"
+              + (f"; {why}" if why else ""))
+
+
+def _age(seconds: float) -> str:
+    for unit, size in (("d", 86400), ("h", 3600), ("min", 60)):
+        if seconds >= size:
+            return f"{seconds / size:.1f} {unit}"
+    return f"{seconds:.0f} s"
+
+
 def cmd_run(args) -> None:
     from agent.runtime.config import check_config
 
@@ -87,6 +134,10 @@ def add_commands(sub, common) -> None:
                    "repeatable or comma-separated)")
     s.add_argument("--limit", type=int, default=50, help="newest N events (default 50)")
     s.set_defaults(func=cmd_events)
+
+    s = sub.add_parser("status", parents=[common], help="each drive's current state, from the agent's journal")
+    s.add_argument("--config", required=True, metavar="FILE", help="the agent's config TOML")
+    s.set_defaults(func=cmd_status)
 
     s = sub.add_parser("run", parents=[common], help="run the agent service (or only check its config)")
     g = s.add_mutually_exclusive_group(required=True)
