@@ -38,11 +38,12 @@ def files(tmp_path_factory):
     shipped = (PROFILE_PATH.parents[1] / "agent.toml").read_text().replace("profiles/", f"{PROFILE_PATH.parent}/")
     for name, old, new in (("window.toml", "window_s = 2.0", "window_s = 1e12"),
                            ("hop.toml", "hop_s = 1.0", "hop_s = -1"),
-                           ("stretches.toml", "learn_stretches = 40", "learn_stretches = 0")):
+                           ("stretches.toml", "learn_stretches = 40", "learn_stretches = 0"),
+                           ("buffers.toml", "window_s = 2.0", "window_s = 40.0")):
         (d / name).write_text(shipped.replace(old, new))
     return {"dir": str(d), "rec": rec, "model": model, **{k.replace(".", "_"): str(d / k) for k in (
         "zeros.npz", "empty.csv", "header.csv", "missing.csv", "text.csv", "notzip.npz", "bad.json",
-        "bad.toml", "unknown.toml", "dir.npz", "window.toml", "hop.toml", "stretches.toml")}}
+        "bad.toml", "unknown.toml", "dir.npz", "window.toml", "hop.toml", "stretches.toml", "buffers.toml")}}
 
 
 #: (argv with {placeholders}, a word the one line must contain)
@@ -87,6 +88,7 @@ CASES = [
     (["run", "--check-config", "{hop_toml}"], "pipeline.hop_s"),
     (["run", "--check-config", "{stretches_toml}"], "pipeline.learn_stretches"),
     (["run", "--config", "{window_toml}"], "pipeline.window_s"),
+    (["run", "--check-config", "{buffers_toml}"], "MB"),
     (["learn", "--config", "{dir}/nope.toml", "--drive", "d1"], "nope.toml"),
     (["demo", "--seconds", "0"], "--seconds"),
     (["nosuchcommand"], "nosuchcommand"),

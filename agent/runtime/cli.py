@@ -105,12 +105,16 @@ def cmd_run(args) -> None:
     if args.check_config:
         cfg = check_config(args.check_config)
         names = ", ".join(f"{d.name} ({d.source.kind})" for d in cfg.drives)
+        from agent.runtime.config import buffer_mb
+
+        mb = buffer_mb(cfg)
         if args.json:
             json.dump({"config": str(cfg.source), "ok": True, "drives": [d.name for d in cfg.drives],
-                       "state_dir": str(cfg.state_dir)}, sys.stdout)
+                       "state_dir": str(cfg.state_dir), "buffer_mb": round(mb, 1)}, sys.stdout)
             sys.stdout.write("\n")
         else:
-            print(f"{args.check_config}: OK: {len(cfg.drives)} drive(s): {names}; state_dir {cfg.state_dir}")
+            print(f"{args.check_config}: OK: {len(cfg.drives)} drive(s): {names}; state_dir {cfg.state_dir}; "
+                  f"signal buffers about {mb:.0f} MB")
         return
     cfg = check_config(args.config)
     try:

@@ -212,6 +212,24 @@ class JournalCfg:
     error_holdoff_s: float = _opt(60.0, ge=0)  #: repeats of the same error within this are only counted
 
 
+MAX_BUFFER_MB = 400.0  #: signal buffers beyond this do not fit the unit's MemoryHigh (config/pmsm-agent.service)
+
+
+def buffer_mb(cfg) -> float:
+    """Memory of the drives' signal buffers, MB: each drive keeps its span (window x span windows)
+    of 15 float64 rows twice (a ring whose any stretch is contiguous) plus its block queue."""
+    from agent.pipeline import _ROWS, PipelineConfig
+    from agent.runtime.service import QUEUE_BLOCKS
+
+    total = 0.0
+    for d in cfg.drives:
+        rate = d.drive_profile.sampling.rate_hz
+        span = cfg.pipeline.window_s * PipelineConfig().span_windows * rate
+        block = getattr(d.source, "block_s", 0.1) * rate
+        total += (2 * len(_ROWS) * span + QUEUE_BLOCKS * 6 * block) * 8
+    return total / 1e6
+
+
 def _default_agent_id() -> str:
     return re.sub(r"[^a-z0-9_.\-]+", "-", socket.gethostname().lower()).strip("-.") or "agent"
 
@@ -356,6 +374,10 @@ def _validate(cfg: Config) -> Config:
     if p.hop_s > p.window_s:
         raise _KeyError("pipeline.hop_s", f"must be <= pipeline.window_s ({p.window_s}), got {p.hop_s}")
     _validate_zenoh(cfg.zenoh)
+    mb = buffer_mb(replace(cfg, drives=tuple(drives)))
+    if mb > MAX_BUFFER_MB:
+        raise _KeyError("pipeline.window_s", f"the signal buffers of {len(drives)} drive(s) would take {mb:.0f} MB "
+                        f"(at most {MAX_BUFFER_MB:g} MB): shorten the window or split the drives")
     state_dir = cfg.state_dir or _default_state_dir()
     if state_dir.exists() and not state_dir.is_dir():
         raise _KeyError("state_dir", f"{state_dir} exists and is not a directory")
