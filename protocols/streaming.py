@@ -309,6 +309,7 @@ class EmulatorThread:
         self.done = threading.Event()
         self._lock = threading.Lock()
         self._inject: list = []
+        self._finished = False  #: every frame sent: inject() sends at once
         self._drop = 0
         self._t0 = 0.0
         self.frames_sent = 0
@@ -349,9 +350,13 @@ class EmulatorThread:
         return self.done.wait(timeout)
 
     def inject(self, item) -> None:
-        """Send ``item`` before the next frame."""
+        """Send ``item`` before the next frame; once the last frame is out, at once (nothing
+        injected is ever lost: an unpaced stream can end before the caller injects)."""
         with self._lock:
-            self._inject.append(item)
+            if not self._finished:
+                self._inject.append(item)
+                return
+        self._send_injected(item)
 
     def drop_frames(self, n: int) -> None:
         """Do not send the next ``n`` frames (their sample counters are used up: a gap)."""
@@ -405,6 +410,10 @@ class EmulatorThread:
             for rec in self._records():
                 if not self._send_record(rec):
                     return
+            with self._lock:  # what was injected after the last frame goes out now
+                extra, self._inject, self._finished = self._inject, [], True
+            for item in extra:
+                self._send_injected(item)
         except Exception as err:  # noqa: BLE001 - e.g. EIO when the port is unplugged
             self.error = err
             logging.getLogger(type(self).__module__).info("%s stopped: %r", self._thread.name, err)
