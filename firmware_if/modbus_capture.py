@@ -159,6 +159,9 @@ class CaptureHeader:
 
     @classmethod
     def from_registers(cls, regs) -> CaptureHeader:
+        """The header from its registers; ``ValueError`` for a reply shorter than the header."""
+        if len(regs) < HEADER_REGS:
+            raise ValueError(f"short header reply: {len(regs)} of {HEADER_REGS} registers")
         v = decode_block(HEADER_DEFS, regs)
         return cls(status=v["STATUS"], error=v["ERROR"], seq=v["SEQ"], count=v["COUNT"], rate_hz=v["RATE"],
                    first_sample=v["FIRST_SAMPLE"], capacity=v["CAPACITY"], n_channels=v["CHANNELS"],

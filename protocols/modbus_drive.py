@@ -318,9 +318,9 @@ class ModbusSnapshotSource(OpenClose):
             return None
         if self._phase == "wait":
             rr = self._call("status", client.read_input_registers, 0, count=cap.HEADER_REGS)
-            if rr is None:
+            hdr = None if rr is None else self._decode_header(rr.registers)
+            if hdr is None:
                 return None
-            hdr = CaptureHeader.from_registers(rr.registers)
             now = time.monotonic()
             # a drive that has not yet taken the trigger may still show IDLE, or READY with the
             # snapshot this source read last: keep polling for IDLE_GRACE_S
@@ -364,9 +364,9 @@ class ModbusSnapshotSource(OpenClose):
             return None
         if self._phase == "verify":
             rr = self._call("verify", client.read_input_registers, 0, count=cap.HEADER_REGS)
-            if rr is None:
+            hdr = None if rr is None else self._decode_header(rr.registers)
+            if hdr is None:
                 return None
-            hdr = CaptureHeader.from_registers(rr.registers)
             if hdr.status != Status.READY or hdr.seq != self._hdr.seq:
                 self.stats.discarded += 1
                 self.stats.last_error = "snapshot replaced while reading"
@@ -383,6 +383,17 @@ class ModbusSnapshotSource(OpenClose):
             self._restart()
             return block
         raise AssertionError(self._phase)
+
+    def _decode_header(self, regs) -> CaptureHeader | None:
+        """The capture header, or None (counted as a bad frame, logged) for a malformed reply."""
+        try:
+            return CaptureHeader.from_registers(regs)
+        except ValueError as err:
+            self.stats.bad_frames += 1
+            self.stats.last_error = str(err)
+            if self._throttle("header"):
+                log.warning("%s: %s; polling again", self.name, err)
+            return None
 
     def _start_reading(self, hdr: CaptureHeader) -> None:
         c = self.config

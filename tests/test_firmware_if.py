@@ -559,3 +559,10 @@ def test_put_drop_oldest_keeps_the_newest():
     q = queue.Queue(maxsize=3)
     dropped = sum(put_drop_oldest(q, i) for i in range(10))
     assert dropped == 7 and [q.get_nowait() for _ in range(3)] == [7, 8, 9]
+
+
+def test_short_capture_header_reply_is_a_value_error_naming_the_lengths():
+    from firmware_if import modbus_capture as cap
+
+    with pytest.raises(ValueError, match=f"short header reply: 5 of {cap.HEADER_REGS} registers"):
+        cap.CaptureHeader.from_registers([0] * 5)
