@@ -1,0 +1,63 @@
+"""The README works verbatim: its shell blocks run in a fresh folder (the project's config/ and
+.venv beside them, nothing else), exit 0, and the offline tour ends at the diagnosis it promises."""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import subprocess
+
+import pytest
+
+from runtime_support import ROOT, free_port
+
+pytestmark = pytest.mark.timeout(300)
+
+#: commands that run until stopped (the service): run for RUN_S seconds, then SIGTERM
+LONG_RUNNING = re.compile(r"pmsm-agent run --config ")
+RUN_S = 10
+
+
+def shell_blocks() -> list[str]:
+    return re.findall(r"```sh\n(.*?)```", (ROOT / "README.md").read_text(), flags=re.S)
+
+
+@pytest.fixture
+def fresh(tmp_path):
+    """A fresh folder with the project's config/ (the shipped agent config's fixed Modbus and zenoh
+    ports moved to free ones, so the test collides with nothing) and the .venv."""
+    shutil.copytree(ROOT / "config", tmp_path / "config")
+    cfg = tmp_path / "config" / "agent.toml"
+    cfg.write_text(cfg.read_text().replace("port = 5020", f"port = {free_port()}")
+                   .replace("tcp/127.0.0.1:7447", f"tcp/127.0.0.1:{free_port()}"))
+    (tmp_path / ".venv").symlink_to(ROOT / ".venv")
+    return tmp_path
+
+
+def run_block(block: str, cwd) -> subprocess.CompletedProcess:
+    lines = [f"timeout -s TERM {RUN_S} {re.sub(r'[ ]+#.*$', '', line)} || test $? -eq 124"
+             if LONG_RUNNING.search(line) else line for line in block.splitlines()]
+    script = "set -e\n" + ("" if lines and lines[0].startswith(". .venv") else ". .venv/bin/activate\n") + "\n".join(lines)
+    env = {k: v for k, v in os.environ.items() if k not in ("VIRTUAL_ENV", "STATE_DIRECTORY")}
+    return subprocess.run(["bash", "-c", script], cwd=cwd, capture_output=True, text=True, env=env, timeout=280)
+
+
+def test_the_offline_tour_ends_at_the_promised_diagnosis(fresh):
+    tour = shell_blocks()[0]
+    assert "diagnose" in tour and "gear_severe_wear" in tour
+    r = run_block(tour, fresh)
+    assert r.returncode == 0, r.stderr
+    assert "Traceback" not in r.stderr
+    assert "runs/severe.csv: WARNING" in r.stdout, r.stdout[-2000:]
+    assert (fresh / "runs" / "gear80.json").is_file() and len(list((fresh / "runs").glob("healthy_*.npz"))) == 30
+
+
+def test_every_other_block_runs(fresh):
+    """The agent block: check the config, run the agent for a while, list its journal."""
+    for block in shell_blocks()[1:]:
+        r = run_block(block, fresh)
+        assert r.returncode == 0, (block, r.stderr)
+        assert "Traceback" not in r.stderr
+        if "events" in block:
+            assert " start " in r.stdout and "learning" in r.stdout, r.stdout
