@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 PYTEST_ARGS ?=
 
-.PHONY: setup setup-test demo test test-full bench bench-alarms docs clean
+.PHONY: setup setup-test demo test test-full bench bench-alarms docs clean gateway
 
 setup: $(VENV)/.stamp-run
 
@@ -14,10 +14,21 @@ $(BIN)/python:
 	$(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 
-$(VENV)/.stamp-run: $(BIN)/python requirements.lock pyproject.toml agent/_kernels.c
-	$(BIN)/pip install -q -r requirements.lock
-	$(BIN)/pip install -q --no-deps --no-build-isolation -e .
+# The development setup: the gateway's runtime plus the workbench (the demo's simulated drive is the
+# rig simulator, which needs numba). A gateway PC takes `make gateway` instead.
+$(VENV)/.stamp-run: $(BIN)/python requirements.lock requirements-workbench.lock pyproject.toml setup.py agent/_kernels.c
+	$(BIN)/pip install -q -r requirements-workbench.lock
+	$(BIN)/pip install -q --no-deps --no-build-isolation -e . >/dev/null
 	touch $@
+
+# A lean gateway install into GATEWAY_VENV (default /opt/pmsm-agent/.venv): the agent, its
+# transports and the C kernels; no workbench, no simulator (docs/benchmarks.md has its size).
+GATEWAY_VENV ?= /opt/pmsm-agent/.venv
+gateway:
+	$(PY) -m venv $(GATEWAY_VENV)
+	$(GATEWAY_VENV)/bin/python -m pip install -q --upgrade pip
+	$(GATEWAY_VENV)/bin/pip install -q -r requirements.lock
+	$(GATEWAY_VENV)/bin/pip install -q --no-deps --no-build-isolation . >/dev/null
 
 $(VENV)/.stamp-test: $(VENV)/.stamp-run requirements-test.lock
 	$(BIN)/pip install -q -r requirements-test.lock

@@ -24,6 +24,8 @@ log = logging.getLogger("pmsm-agent")
 
 #: Modules that add subcommands: each has ``add_commands(subparsers, common_parent)`` whose
 #: handlers take the parsed args and raise ``InputError`` for user errors.
+#: what the gateway install leaves out (pyproject's ``workbench`` extra)
+WORKBENCH_MODULES = ("scipy", "numba", "matplotlib", "llvmlite")
 EXTENSIONS: tuple[str, ...] = ("agent.runtime.cli", "agent.runtime.commissioning", "agent.workbench.cli")
 
 
@@ -259,6 +261,12 @@ def _main(argv: list[str] | None) -> int:
         return 130
     except BrokenPipeError:
         raise
+    except ModuleNotFoundError as err:
+        if err.name not in WORKBENCH_MODULES:
+            raise
+        print(f"pmsm-agent {args.command}: error: this needs the workbench install ({err.name} is missing): "
+              f"pip install 'pmsm-agent[workbench]' (in the checkout: make setup)", file=sys.stderr)
+        return 2
     except Exception:  # a bug: say so, with the traceback, and exit 1
         log.exception("internal error")
         return 1

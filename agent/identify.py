@@ -155,19 +155,45 @@ def constrain(fit: FitResult, psi_m: float | None = None) -> None:
     guess = np.where(np.isfinite(guess) & (guess > 0), guess, scale)
     free = slice(0, 4 if psi_m is None else 3)
 
-    def params(z):
+    def params(z):  # log parametrisation, within 2e-9 .. 5e8 of the typical magnitudes
         p = guess.copy()
-        p[free] = np.exp(z) * scale[free]
+        p[free] = np.exp(np.clip(z, -20.0, 20.0)) * scale[free]
         return p
 
     def residual(z):
         g_d, g_q = lumped_params(model.form, model.ts, *params(z), w)
         return np.concatenate((chol_d @ (g_d - model.theta_d[:nd]), chol_q @ (g_q - model.theta_q[:nq])))
 
-    import scipy.optimize  # noqa: PLC0415 (heavy; only when a fit is implausible)
+    model.from_physical(*params(levenberg_marquardt(residual, np.log(guess[free] / scale[free]))), omega_e=w)
 
-    sol = scipy.optimize.least_squares(residual, np.log(guess[free] / scale[free]), method="trf")
-    model.from_physical(*params(sol.x), omega_e=w)
+
+def levenberg_marquardt(residual, x0: np.ndarray, max_iter: int = 200, tol: float = 1e-12) -> np.ndarray:
+    """Minimise ||residual(x)||^2 from ``x0`` (a few parameters; forward-difference Jacobian).
+
+    Numpy only: the running agent constrains a learned model without scipy (the gateway install).
+    The damping falls after a step that lowers the cost and rises after one that does not."""
+    x = np.asarray(x0, dtype=float).copy()
+    r = residual(x)
+    cost, lam = float(r @ r), 1e-3
+    for _ in range(max_iter):
+        h = 1e-7 * (1.0 + np.abs(x))
+        jac = np.column_stack([(residual(x + np.eye(x.size)[j] * h[j]) - r) / h[j] for j in range(x.size)])
+        g, hess = jac.T @ r, jac.T @ jac
+        while True:
+            step = np.linalg.solve(hess + lam * np.diag(np.diag(hess) + 1e-12), -g)
+            r_new = residual(x + step)
+            c_new = float(r_new @ r_new)
+            if np.isfinite(c_new) and c_new < cost:
+                x, r, lam = x + step, r_new, max(lam / 3.0, 1e-12)
+                done = cost - c_new <= tol * cost or np.linalg.norm(step) <= tol * (1.0 + np.linalg.norm(x))
+                cost = c_new
+                break
+            lam *= 4.0
+            if lam > 1e12:
+                return x
+        if done:
+            return x
+    return x
 
 
 def _sqrt_info(info: np.ndarray) -> np.ndarray:

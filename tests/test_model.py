@@ -193,3 +193,22 @@ def test_fit_torque_equals_rls_of_algorithm_1():
     rls = StreamingRLS(2, lam=1.0, p0=1e6)
     rls.update(x.T, y)
     np.testing.assert_allclose(fit_torque(sig, PROFILE), rls.theta, rtol=1e-9)
+
+
+def test_levenberg_marquardt_agrees_with_scipy():
+    """The agent's numpy least squares (used to constrain a learned model without scipy) reaches
+    scipy's optimum on a nonlinear problem (exponential decay with noise)."""
+    import scipy.optimize
+
+    from agent.identify import levenberg_marquardt
+
+    rng = np.random.default_rng(3)
+    t = np.linspace(0, 4, 60)
+    y = 2.5 * np.exp(-1.3 * t) + 0.4 + rng.normal(0, 0.02, t.size)
+
+    def residual(z):
+        return z[0] * np.exp(-z[1] * t) + z[2] - y
+
+    ours = levenberg_marquardt(residual, np.array([1.0, 0.5, 0.0]))
+    ref = scipy.optimize.least_squares(residual, np.array([1.0, 0.5, 0.0]), xtol=1e-14, ftol=1e-14).x
+    np.testing.assert_allclose(ours, ref, rtol=1e-6)
