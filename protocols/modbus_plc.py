@@ -162,11 +162,16 @@ class PlcModbusServer(OpenClose):
         if self._open:
             return
         self._loop.start(self.start_timeout_s)
+        quiet = logging.getLogger("pymodbus.logging")  # its bind warning would repeat our one line
+        level = quiet.level
+        quiet.setLevel(logging.ERROR)
         try:
             self._loop.run(self._start(), self.start_timeout_s + 1.0)
         except BaseException:
             self._loop.stop()
             raise
+        finally:
+            quiet.setLevel(level)
         with self._lock:
             self._open = True
         log.info("PLC Modbus server on %s:%d, unit %d, %d drive(s)", self.host, self._port, self.device_id, self._n)
@@ -254,7 +259,7 @@ class PlcModbusServer(OpenClose):
         try:
             await asyncio.wait_for(server.serve_forever(background=True), self.start_timeout_s)
         except RuntimeError as err:  # pymodbus: "Could not start listen"
-            raise OSError(f"modbus plc: cannot listen on {self.host}:{self._port}: {err}") from err
+            raise OSError(f"cannot listen on {self.host}:{self._port} (in use, or not an address of this machine)") from err
         self._port = server.transport.sockets[0].getsockname()[1]
         self._server = server
         self._t_start = time.monotonic()

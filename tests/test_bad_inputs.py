@@ -107,6 +107,39 @@ def test_bad_input_is_one_line_and_exit_2(files, capsys, argv, word):
     assert word in err, err
 
 
+@pytest.mark.parametrize("what", ["modbus", "zenoh"])
+def test_a_port_in_use_is_one_line_naming_the_key(files, capsys, tmp_path, what):
+    import socket
+
+    busy = socket.socket()
+    busy.bind(("127.0.0.1", 0))
+    busy.listen()
+    port = busy.getsockname()[1]
+    try:
+        cfg = tmp_path / "agent.toml"
+        cfg.write_text(f"""schema_version = 1
+state_dir = "{tmp_path / 'state'}"
+[[drives]]
+name = "d1"
+profile = "{P}"
+[drives.source]
+kind = "replay"
+files = ["{files['rec']}"]
+[modbus_server]
+enabled = {str(what == "modbus").lower()}
+port = {port}
+[zenoh]
+enabled = {str(what == "zenoh").lower()}
+listen = ["tcp/127.0.0.1:{port}"]
+""")
+        rc = main(["run", "--config", str(cfg)])
+        err = capsys.readouterr().err
+        assert rc == 2 and len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+        assert ("modbus_server.port" if what == "modbus" else "zenoh.listen") in err and str(port) in err
+    finally:
+        busy.close()
+
+
 def test_diagnose_of_a_stopped_drive_is_no_diagnosis_not_an_alarm(files, capsys):
     assert main(["diagnose", "--json", "--model", files["model"], files["zeros_npz"]]) == 0
     import json

@@ -25,6 +25,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+from agent.errors import InputError
 from agent.evidence import AlarmConfig
 from agent.library import ModelLibrary, Schedule
 from agent.pipeline import DriveMonitor, PipelineConfig
@@ -320,7 +321,13 @@ class Service:
         opened = []
         try:
             for sink in self.sinks:
-                sink.open()
+                try:
+                    sink.open()
+                except Exception as err:  # a busy port, an endpoint zenoh cannot listen on: the config's to fix
+                    key = {"modbus-plc": "modbus_server.port", "zenoh": "zenoh.listen"}.get(getattr(sink, "name", ""))
+                    if key is None:
+                        raise
+                    raise InputError(f"{key}: {err}", source=str(self.cfg.source)) from err
                 opened.append(sink)
             for d in self.drives.values():
                 d.reader = threading.Thread(target=self._reader, args=(d,), name=f"source-{d.name}", daemon=True)
