@@ -22,6 +22,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
+from agent.errors import InputError
 from agent.runtime.config import check_config
 from agent.runtime.journal import Journal, journal_path
 from firmware_if import plc_registers as reg
@@ -306,7 +307,7 @@ def test_no_ready_when_a_sink_cannot_open(tmp_path, monkeypatch):
         cfg_path.write_text(agent_toml(tmp_path / "state", port, free_port()))
         service = Service(check_config(cfg_path))
         t0 = time.monotonic()
-        with pytest.raises(OSError):
+        with pytest.raises(InputError, match=f"modbus_server.port: cannot listen on 127.0.0.1:{port}"):
             service.run(max_seconds=10.0)
         assert time.monotonic() - t0 < 10.0
     time.sleep(0.2)
