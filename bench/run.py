@@ -15,7 +15,7 @@ import sys
 import time
 from pathlib import Path
 
-BENCHES = ("bench_rls", "bench_identify", "bench_pipeline", "bench_explain", "bench_transports", "bench_modbus",
+BENCHES = ("bench_rls", "bench_identify", "bench_pipeline", "bench_agent", "bench_explain", "bench_transports", "bench_modbus",
            "bench_zenoh")
 RESULTS = Path(__file__).resolve().parent / "results" / "results.json"
 
