@@ -32,7 +32,7 @@ def test_unit_keys():
                        "ProtectSystem": "strict", "NoNewPrivileges": "yes", "SupplementaryGroups": "dialout",
                        "RestrictAddressFamilies": "AF_UNIX AF_INET AF_INET6 AF_CAN AF_NETLINK"}.items():
         assert svc[key] == value, key
-    assert svc["MemoryMax"] == "512M" and svc["MemoryHigh"] == "384M" and svc["CPUQuota"] == "100%"
+    assert svc["MemoryMax"] == "640M" and svc["MemoryHigh"] == "448M" and svc["CPUQuota"] == "100%"
     assert "OPENBLAS_NUM_THREADS=1" in " ".join(v for k, v in s["Service"] if k == "Environment")
     assert ("DeviceAllow", "char-ttyUSB rw") in s["Service"] and ("DeviceAllow", "char-ttyACM rw") in s["Service"]
     assert {"StartLimitIntervalSec", "StartLimitBurst"} <= {k for k, _ in s["Unit"]}
