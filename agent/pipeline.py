@@ -1,30 +1,35 @@
 """Streaming pipeline of one drive: blocks -> angle -> window -> model -> residual spectrum and
-parameter cluster -> decision -> alarm state, with fixed memory.
+parameter cluster -> evidence -> decision -> alarm state, with fixed memory.
 
 Every ``hop_s`` the last *span* of ``span_windows`` x ``window_s`` samples (a ring buffer) is
-assessed against the baseline scheduled for its operating point (:mod:`agent.library`), exactly as
-``diagnose`` assesses a record of that length: residual spectra of each window (a fault line must
-persist in all of them), the parameter-cluster point of the whole span. Each window's spectrum is
-computed once, when the window completes, and reused by the later spans that contain it.
+assessed in one flow, the same as offline ``diagnose``: signals, operating point (a drive that is
+not running is quality ``no_model``, :mod:`agent.sanity`), the baseline scheduled for it
+(:mod:`agent.library`), the residual spectra of its windows (each computed once, when the window
+completes, and reused by later spans), the cluster point, and the alarm evidence
+(:mod:`agent.evidence`): the newest window for the gross path, stretches of ``alarm.stretch_s``
+for the slow-wear CUSUMs, a settling guard after operating-point changes. The paper's per-span
+rule still gives the ``peaks`` shown with a status.
 
-Around the span decision:
+Around the decision:
 
-* persistence: a level is raised when ``persist_hops`` consecutive decisions reach it (a single
-  decision's false-alarm rate is a few per cent, see docs/method.md);
+* persistence: a level is raised when ``persist_hops`` consecutive decisions reach it;
 * hold: a raised level is kept until lower decisions have lasted ``alarm_hold_s`` (no chattering);
-* quality: ``no_model`` outside every baseline (no alarm), ``learning`` while a baseline is being
-  learned, ``bad_input`` for a span with NaN or saturated samples, ``stale`` when input stops
-  (:meth:`DriveMonitor.tick`), else ``good``. The last values are kept in every case.
+* quality: ``no_model`` outside every baseline or when the drive is not running (no alarm),
+  ``learning`` while a baseline is being learned, ``bad_input`` for a span with NaN or saturated
+  samples, ``stale`` when input stops (:meth:`DriveMonitor.tick`), else ``good``; every status
+  carries its ``reason``, the evidence per family and the learning progress in ``extra``.
 
-Latency: a fault that starts at t0 fills a whole span by t0 + span + hop at the latest and is
-raised ``persist_hops - 1`` hops later: with the defaults (span 4 s, hop 1 s, 1 hop) within one
-span plus 1 s. (Consecutive spans overlap by 3/4, so requiring two of them changed nothing
-measurable: 2 alarm events per 10 min of healthy simulated signal either way, docs/benchmarks.md.)
+Latency: a gross fault that starts at t0 fills a window by t0 + window and is raised at the next
+hop (window + hop, after a settling period if the operating point just changed); slow wear is
+raised when its CUSUM crosses its threshold (minutes: docs/benchmarks.md).
 
 Learning (commissioning) runs the baseline's two passes on the stream
 (:class:`agent.baseline.BaselineBuilder`): ``learn_windows`` non-overlapping spans for the
-parameters and cluster, then as many windows for the residual-spectrum thresholds; the baseline
-is then written to the library (atomically) and scheduled.
+parameters, then at least ``learn_stretches`` stretches over ``learn_min_s`` for the thresholds
+(non-overlapping windows) and the alarm statistics; it refuses, with the reason, a load or speed
+spread beyond the schedule's tolerance, too many unusable spans, a change of the lines' level
+within the learning, and an operating point that a baseline already covers (unless told to
+replace it). The baseline is then written to the library (atomically) and scheduled.
 """
 
 from __future__ import annotations
