@@ -92,8 +92,7 @@ def load_record(path: str | Path, profile=None, min_samples: int = 0) -> Record:
     path = Path(path)
     src = str(path)
     reader = _READERS[_suffix(path)]
-    if not path.is_file():
-        raise InputError("no such record file", source=src)
+    _check_file(path)
     columns, meta, found = reader(path, src)
     return validate_record(_from_columns(columns, src, meta, found), profile, min_samples)
 
@@ -106,8 +105,7 @@ def stream_record(path: str | Path, profile=None, chunk_samples: int = 25_000) -
     path = Path(path)
     src = str(path)
     opener = _STREAMERS[_suffix(path)]
-    if not path.is_file():
-        raise InputError("no such record file", source=src)
+    _check_file(path)
     last_t, step = None, None
     for columns, meta, found in opener(path, src, max(2, int(chunk_samples))):
         chunk = validate_record(_from_columns(columns, src, meta, found), profile)
@@ -140,6 +138,8 @@ def validate_record(record: Record, profile=None, min_samples: int = 0) -> Recor
     Raises :class:`InputError` naming ``record.source``; returns ``record`` unchanged.
     """
     src, n = record.source, record.n
+    if n == 0:
+        raise InputError("no samples: the file has no data rows", source=src)
     if n < min_samples:
         raise InputError(f"too short for the window: {n} samples, need {min_samples}", source=src)
     if n < 2:
@@ -159,6 +159,18 @@ def validate_record(record: Record, profile=None, min_samples: int = 0) -> Recor
 
 
 # ---------------------------------------------------------------------------------- helpers
+
+
+def _check_file(path: Path) -> None:
+    if path.is_dir():
+        raise InputError("is a folder, not a record file", source=str(path))
+    if not path.is_file():
+        raise InputError("no such record file", source=str(path))
+    if path.suffix.lower() == ".npz":
+        import zipfile
+
+        if not zipfile.is_zipfile(path):
+            raise InputError("cannot read NPZ: not an NPZ archive (not a zip file)", source=str(path))
 
 
 def _suffix(path: Path) -> str:
