@@ -6,12 +6,13 @@ cd "$(dirname "$0")/.."
 n=${1:-20}
 shift || true
 failed=0
+logs=$(mktemp -d -t repeat-suite-XXXX)
 for i in $(seq 1 "$n"); do
-  if .venv/bin/python -m pytest -q -p no:cacheprovider "$@" > "/tmp/repeat_suite.$i.log" 2>&1; then
-    echo "run $i: ok ($(tail -n 1 "/tmp/repeat_suite.$i.log"))"
+  if .venv/bin/python -m pytest -q -p no:cacheprovider "$@" > "$logs/$i.log" 2>&1; then
+    echo "run $i: ok ($(tail -n 1 "$logs/$i.log"))"
   else
     failed=$((failed + 1))
-    echo "run $i: FAILED, see /tmp/repeat_suite.$i.log"
+    echo "run $i: FAILED, see $logs/$i.log"
   fi
 done
 echo "$((n - failed)) passed, $failed failed"
