@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from agent.baseline import Baseline, residual_spectra
-from agent.evidence import feature_values
+from agent.evidence import K_MAX, STATES, feature_values
 from agent.frequencies import fault_frequencies
 from agent.identify import cluster_point, operating_point, record_signals
 from agent.model import Signals
@@ -26,8 +26,6 @@ from agent.records import Record
 from agent.sanity import not_running
 from agent.spectrum import nearest_bin, peak_near
 
-STATES = ("normal", "caution", "warning")  #: codes 0 / 1 / 2
-K_MAX = 3  #: sideband orders checked per family
 #: Relative distance of a record's operating point from the model's that earns a warning note.
 FE_TOLERANCE, LOAD_TOLERANCE_PCT = 0.02, 5.0
 

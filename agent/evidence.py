@@ -46,7 +46,7 @@ from agent.spectrum import peak_near
 K_MAX = 3  #: sideband orders per family
 _NORMAL = NormalDist()
 MONTH_S = 30 * 86400.0
-STATES = ("normal", "caution", "warning")
+STATES = ("normal", "caution", "warning")  #: codes 0 / 1 / 2
 
 
 # --- features ----------------------------------------------------------------------------------
