@@ -93,3 +93,11 @@ def test_learn_from_the_live_source(tmp_path, capsys):
     assert rc == 0, err
     assert json.loads(out)["name"] == "live80"
     assert (tmp_path / "state" / "library" / "live80.json").is_file()
+
+
+def test_learn_from_a_live_source_that_is_not_there(tmp_path, capsys):
+    cfg = config(tmp_path)
+    cfg.write_text(cfg.read_text().replace('kind = "simulated"', f'kind = "serial"\nport = "{tmp_path}/no-tty"'))
+    rc, out, err = run(["learn", "--config", str(cfg), "--drive", "drive1", "--max-seconds", "5"], capsys)
+    assert rc == 2 and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert "cannot open its serial source" in err, err

@@ -74,7 +74,11 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
     else:
         source = build_source(drive, drive.drive_profile.sampling.rate_hz, pcfg.window_s * pcfg.span_windows)
         t_end = None if max_seconds is None else time.monotonic() + max_seconds
-        source.open()
+        try:
+            source.open()
+        except Exception as err:  # a link that is not there: the user's to connect or configure
+            raise InputError(f"drive {drive.name}: cannot open its {drive.source.kind} source: {err}",
+                             source=str(cfg.source)) from err
         try:
             while monitor.learning and (t_end is None or time.monotonic() < t_end):
                 blk = source.read(timeout=0.5)
