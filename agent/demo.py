@@ -69,6 +69,10 @@ def run_demo(seconds: float = WALL_LIMIT_S, say=print) -> list[dict]:
             say(f"[{t:6.2f} s] {drive}: baseline learned at fe {op.get('fe_hz', 0):.1f} Hz, "
                 f"load {op.get('load_pct', 0):.0f} % -> {detail.get('path')}")
 
+    import logging
+
+    # the demo prints every transition itself: the service's journald lines would repeat them
+    logging.getLogger("pmsm-agent.transitions").setLevel(logging.ERROR)
     with tempfile.TemporaryDirectory(prefix="pmsm-demo-") as state:
         cfg = demo_config(Path(state))
         say(f"demo: simulated gear drive at {SPEEDUP:g}x real time; Modbus TCP on "
