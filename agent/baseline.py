@@ -20,7 +20,8 @@ import numpy as np
 from agent.errors import InputError
 from agent.evidence import EvidenceStats, Feature, feature_values, make_features
 from agent.identify import (PREFILTER_HZ, FitResult, cluster_point, constrain, fit_record, operating_point,
-                            psi_m_prior, record_signals, refine_output_error)
+                            record_signals, refine_output_error)
+from agent.physical import Estimate, Observation, estimate, observe
 from agent.model import DQModel, Signals
 from agent.profile import DriveProfile
 from agent.records import Record
@@ -167,6 +168,7 @@ class Baseline:
     settings: dict = field(default_factory=dict)
     history: list[dict] = field(default_factory=list)
     evidence: EvidenceStats | None = None  #: healthy statistics of the alarm evidence (agent.evidence)
+    physical: dict | None = None  #: physical parameters with intervals (agent.physical.Estimate.to_json)
 
 
 class BaselineBuilder:
@@ -182,10 +184,12 @@ class BaselineBuilder:
         self.settings = {"form": form, "robust": robust, "window_s": window_s, "prefilter_hz": prefilter_hz,
                          "confidence": confidence, "region": region, "spectrum_rule": spectrum_rule}
         self.fits: list[FitResult] = []
+        self.observations: list[Observation] = []
         self.spectra: list[np.ndarray] = []
         self.freqs: np.ndarray | None = None
         self.sources: list[str] = []
         self._model: DQModel | None = None
+        self._physical: Estimate | None = None
         self._features: list[Feature] | None = None
         # alarm evidence (agent.evidence): per stretch its windows' feature values, cluster point, load
         self.stretch_windows: list[np.ndarray] = []
@@ -203,15 +207,22 @@ class BaselineBuilder:
         fit = fit_record(sig, self.profile, self.settings["form"] if m is None else m.form, extra,
                          prefilter_hz=self.settings["prefilter_hz"], plausible=False)
         self.fits.append(fit)
+        self.observations.append(observe(sig))
         self.sources.append(source)
         return fit
+
+    def physical(self) -> Estimate:
+        """Physical parameters (R_s, L_d, L_q, psi_m) from the records so far and the nameplate."""
+        if self._physical is None:
+            self._physical = estimate(self.observations, self.profile)
+        return self._physical
 
     def model(self) -> DQModel:
         """The baseline model (Alg. 2 line 10) from the fits so far."""
         if self._model is None:
             if len(self.fits) < 4:
                 raise ValueError(f"need at least 4 healthy records, got {len(self.fits)}")
-            self._model = average_model(self.fits, self.settings["robust"], psi_m_prior(self.profile))
+            self._model = average_model(self.fits, self.settings["robust"], self.physical().values["psi_m"])
         return self._model
 
     def set_model(self, model: DQModel) -> None:
@@ -264,7 +275,7 @@ class BaselineBuilder:
             operating_point=op, records=list(self.sources),
             settings={**st, "records": len(self.fits), "windows": len(self.spectra),
                       "implausible_records": sum(f.reason != "ok" for f in self.fits)},
-            evidence=self.evidence())
+            evidence=self.evidence(), physical=self.physical().to_json())
 
     def evidence(self) -> EvidenceStats | None:
         """Healthy statistics of the alarm evidence, or None with fewer than 4 stretches."""

@@ -123,22 +123,39 @@ def cmd_identify(args) -> None:
     base = identify_baseline(recs, profile, form=args.form, robust=args.robust, window_s=args.window,
                              confidence=args.confidence, region=args.region, spectrum_rule=args.spectrum_rule,
                              prefilter_hz=args.prefilter, progress=_progress)
+    phys = base.physical
+    if phys["problems"] and not args.force:
+        raise InputError(f"nonphysical parameters, model not written: {'; '.join(phys['problems'])} "
+                         f"(check the records and the profile's [nameplate]; --force writes it anyway, marked)")
+    if phys["problems"]:
+        base.model.meta["forced"] = phys["problems"]
     save_baseline(base, args.out)
     m = base.model
     names_d, names_q = (tuple(t.name for t in ts) for ts in m.terms)
     params = {"d": dict(zip(names_d, m.theta_d.tolist())), "q": dict(zip(names_q, m.theta_q.tolist())),
-              "physical": m.physical(), "ts_over_lq": float(m.theta_q[2]),
-              "b_gt": float(base.cluster.centre[1]), "constrained": base.model.meta.get("constrained", False)}
+              "physical": phys["values"], "ci95": phys["ci95"], "determined_by": phys["determined_by"],
+              "unidentifiable": phys["unidentifiable"], "ts_over_lq": float(m.theta_q[2]),
+              "b_gt": float(base.cluster.centre[1]), "constrained": base.model.meta.get("constrained", False),
+              "forced": phys["problems"]}
     doc = {"model": str(args.out), "records": len(recs), "params": params,
            "operating_point": {k: base.operating_point[k] for k in ("fe_hz", "load_pct")},
            "cluster": {"centre": base.cluster.centre, "limit": base.cluster.limit, "region": base.cluster.region},
            "seconds": round(time.perf_counter() - t0, 3)}
-    ph = params["physical"]
+    for g in phys["unidentifiable"]:
+        if g["from_nameplate"]:
+            log.info("%s taken from the nameplate: %s", ", ".join(g["parameters"]), g["reason"])
+        else:
+            log.warning("not identifiable from these records: %s", g["reason"])
+    units = {"Rs": ("ohm", 1.0), "Ld": ("mH", 1e3), "Lq": ("mH", 1e3), "psi_m": ("Wb", 1.0)}
+    lines = []
+    for k, (unit, f) in units.items():
+        v, ci, by = phys["values"][k], phys["ci95"][k], phys["determined_by"][k]
+        lines.append(f"  {k:6s} not identifiable (no nameplate value)" if v is None else
+                     f"  {k:6s} {v * f:.4g} {unit}  (95 % {ci[0] * f:.4g} .. {ci[1] * f:.4g}; from {by})")
     _emit(args, doc, (
-        f"baseline from {len(recs)} records -> {args.out}\n"
+        f"baseline from {len(recs)} records -> {args.out}" + (" (FORCED: nonphysical)" if phys["problems"] else "") + "\n"
         f"operating point: fe {doc['operating_point']['fe_hz']:.2f} Hz, load {doc['operating_point']['load_pct']:.1f} %\n"
-        f"physical: Rs {ph['Rs_q']:.3f} ohm, Ld {ph['Ld'] * 1e3:.2f} mH, Lq {ph['Lq'] * 1e3:.2f} mH, "
-        f"psi_m {ph['psi_m']:.4f} Wb\n"
+        "physical parameters:\n" + "\n".join(lines) + "\n"
         f"cluster centre: Ts/Lq {params['ts_over_lq']:.4e}, B_GT {params['b_gt']:.5f} N m s/rad"))
 
 
@@ -223,6 +240,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="low-pass both sides of the regressions at HZ (removes current-sensor noise bias)")
     s.add_argument("--spectrum-rule", choices=("pair", "line"), default="pair",
                    help="a fault needs both sidebands fe -+ k f above threshold (pair, default) or one line (line)")
+    s.add_argument("--force", action="store_true",
+                   help="write the model even when its physical parameters are refused (the model is marked)")
     s.add_argument("data", nargs="+", help="healthy records")
     s.set_defaults(func=cmd_identify)
 

@@ -130,8 +130,11 @@ def cluster_point(sig: Signals, profile: DriveProfile, form: str = "lumped", ext
 
 
 def psi_m_prior(profile: DriveProfile) -> float | None:
-    """Nameplate estimate of the magnet flux linkage, Wb: T_rated = 1.5 p psi_m sqrt(2) I_rated (id = 0)."""
+    """Nameplate magnet flux linkage, Wb: the profile's ``[nameplate]`` value, else from the rated
+    torque and current, T_rated = 1.5 p psi_m sqrt(2) I_rated (id = 0)."""
     m = profile.motor
+    if profile.nameplate is not None and profile.nameplate.psi_m(m.pole_pairs) is not None:
+        return profile.nameplate.psi_m(m.pole_pairs)
     if m.rated_current_a is None:
         return None
     return m.rated_torque_nm / (1.5 * m.pole_pairs * np.sqrt(2.0) * m.rated_current_a)

@@ -35,7 +35,8 @@ def baseline_to_json(b: Baseline) -> dict:
     name = prof.pop("name")
     return {
         "format": FORMAT, "version": VERSION,
-        "profile": {"name": name, **{k: {kk: vv for kk, vv in v.items() if vv is not None} for k, v in prof.items()}},
+        "profile": {"name": name, **{k: {kk: vv for kk, vv in v.items() if vv is not None}
+                                     for k, v in prof.items() if v is not None}},
         "operating_point": b.operating_point,
         "model": {"form": m.form, "ts": m.ts, "fe_hz": m.fe_hz, "theta_d": _arr(m.theta_d),
                   "theta_q": _arr(m.theta_q), "effects": m.meta.get("effects", []),
@@ -46,6 +47,7 @@ def baseline_to_json(b: Baseline) -> dict:
                     "limit": cl.limit, "confidence": cl.confidence, "region": cl.region},
         "records": b.records, "settings": b.settings, "history": b.history,
         **({"evidence": b.evidence.to_json()} if b.evidence is not None else {}),
+        **({"physical": b.physical} if b.physical is not None else {}),
     }
 
 
@@ -68,7 +70,8 @@ def baseline_from_json(doc: dict, source: str = "<model>") -> Baseline:
                             float(cl["limit"]), float(cl["confidence"]), cl["region"]),
             operating_point=doc["operating_point"], records=list(doc.get("records", [])),
             settings=dict(doc.get("settings", {})), history=list(doc.get("history", [])),
-            evidence=EvidenceStats.from_json(doc["evidence"]) if "evidence" in doc else None)
+            evidence=EvidenceStats.from_json(doc["evidence"]) if "evidence" in doc else None,
+            physical=doc.get("physical"))
     except InputError:
         raise
     except (KeyError, TypeError, ValueError) as err:

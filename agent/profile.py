@@ -49,11 +49,45 @@ class Transmission:
 
 
 @dataclass(frozen=True)
+class Nameplate:
+    """Datasheet and nameplate values with their tolerances: identify's priors (agent.physical).
+
+    Phase values of the star equivalent. The back-EMF constant is the line-to-line rms voltage per
+    1000 rpm; with ``psi_m_wb`` as well, the two must agree within their tolerances."""
+
+    rs_ohm: float | None = None  #: phase resistance, DC measurement
+    rs_temp_c: float = 20.0  #: winding temperature of that measurement, C
+    winding_temp_c: float | None = None  #: winding temperature in the records, C (default: rs_temp_c)
+    rs_tol_pct: float = 5.0
+    psi_m_wb: float | None = None  #: magnet flux linkage (peak, per phase)
+    ke_vrms_per_krpm: float | None = None  #: back-EMF constant, line-to-line V rms per 1000 rpm
+    psi_m_tol_pct: float = 5.0
+    ld_h: float | None = None
+    lq_h: float | None = None
+    l_tol_pct: float = 15.0
+
+    def psi_m(self, pole_pairs: int) -> float | None:
+        """psi_m (Wb) from ``psi_m_wb`` or from the back-EMF constant: E_ll,rms = sqrt(3/2) omega_e psi_m."""
+        if self.psi_m_wb is not None:
+            return self.psi_m_wb
+        if self.ke_vrms_per_krpm is not None:
+            return ke_to_psi_m(self.ke_vrms_per_krpm, pole_pairs)
+        return None
+
+
+def ke_to_psi_m(ke_vrms_per_krpm: float, pole_pairs: int) -> float:
+    """Magnet flux linkage (Wb, peak phase) of a back-EMF constant (V rms line-to-line per 1000 rpm)."""
+    omega_e = 1000.0 / 60.0 * 2.0 * math.pi * pole_pairs
+    return ke_vrms_per_krpm * math.sqrt(2.0 / 3.0) / omega_e
+
+
+@dataclass(frozen=True)
 class DriveProfile:
     motor: Motor
     sampling: Sampling
     transmission: Transmission
     name: str = "drive"
+    nameplate: Nameplate | None = None  #: optional priors for identify
 
     @property
     def rated_fe_hz(self) -> float:
@@ -96,7 +130,9 @@ def _build(cls, table: dict, section: str, source: str):
             ok = isinstance(value, str)
         if not ok:
             raise InputError(f"key '{section}.{name}' has the wrong type ({type(value).__name__})", source=source)
-        if isinstance(value, (int, float)) and (not math.isfinite(value) or value <= 0):
+        if isinstance(value, (int, float)) and not math.isfinite(value):
+            raise InputError(f"key '{section}.{name}' must be finite, got {value}", source=source)
+        if isinstance(value, (int, float)) and value <= 0 and not name.endswith("_temp_c"):
             raise InputError(f"key '{section}.{name}' must be positive, got {value}", source=source)
         values[name] = value
     return cls(**values)
@@ -105,8 +141,8 @@ def _build(cls, table: dict, section: str, source: str):
 def parse_profile(data: dict, source: str = "<profile>") -> DriveProfile:
     """Build a profile from a parsed TOML document; errors name ``source`` and the key path."""
     for key in data:
-        if key not in _SECTIONS and key != "name":
-            raise InputError(f"unknown key '{key}' (known: name, {', '.join(_SECTIONS)})", source=source)
+        if key not in _SECTIONS and key not in ("name", "nameplate"):
+            raise InputError(f"unknown key '{key}' (known: name, {', '.join(_SECTIONS)}, nameplate)", source=source)
     parts = {}
     for section, cls in _SECTIONS.items():
         table = data.get(section)
@@ -125,7 +161,39 @@ def parse_profile(data: dict, source: str = "<profile>") -> DriveProfile:
     name = data.get("name", Path(source).stem)
     if not isinstance(name, str):
         raise InputError("key 'name' must be a string", source=source)
-    return DriveProfile(name=name, **parts)
+    plate = None
+    if "nameplate" in data:
+        if not isinstance(data["nameplate"], dict):
+            raise InputError("key 'nameplate' must be a table", source=source)
+        plate = _build(Nameplate, data["nameplate"], "nameplate", source)
+        _check_nameplate(plate, parts["motor"], source)
+    return DriveProfile(name=name, nameplate=plate, **parts)
+
+
+def _check_nameplate(n: Nameplate, motor: Motor, source: str) -> None:
+    """Nameplate values that contradict each other are an error naming the field."""
+    if n.psi_m_wb is not None and n.ke_vrms_per_krpm is not None:
+        from_ke = ke_to_psi_m(n.ke_vrms_per_krpm, motor.pole_pairs)
+        if abs(math.log(n.psi_m_wb / from_ke)) > 2 * n.psi_m_tol_pct / 100:
+            raise InputError(f"key 'nameplate.psi_m_wb' = {n.psi_m_wb:g} Wb does not match nameplate.ke_vrms_per_krpm "
+                             f"= {n.ke_vrms_per_krpm:g} V with {motor.pole_pairs} pole pairs ({from_ke:.4g} Wb)",
+                             source=source)
+    psi = n.psi_m(motor.pole_pairs)
+    if psi is not None and motor.rated_current_a is not None:
+        # rated torque needs at least the magnet torque of the rated current (reluctance torque only adds)
+        need = motor.rated_torque_nm / (1.5 * motor.pole_pairs * math.sqrt(2.0) * motor.rated_current_a)
+        if not 0.3 * need <= psi <= 3.0 * need:
+            key = "psi_m_wb" if n.psi_m_wb is not None else "ke_vrms_per_krpm"
+            raise InputError(f"key 'nameplate.{key}' gives psi_m = {psi:.4g} Wb, but the rated torque and current "
+                             f"need about {need:.4g} Wb", source=source)
+    for key in ("rs_tol_pct", "psi_m_tol_pct", "l_tol_pct"):
+        if not 0 < getattr(n, key) <= 100:
+            raise InputError(f"key 'nameplate.{key}' must be within 0..100 %", source=source)
+    if n.rs_ohm is not None and motor.rated_voltage_v is not None and motor.rated_current_a is not None:
+        z_base = motor.rated_voltage_v / math.sqrt(3) / motor.rated_current_a
+        if not 1e-3 * z_base <= n.rs_ohm <= 0.5 * z_base:
+            raise InputError(f"key 'nameplate.rs_ohm' = {n.rs_ohm:g} ohm is outside 0.001..0.5 of the rated "
+                             f"impedance ({z_base:.3g} ohm)", source=source)
 
 
 def load_profile(path: str | Path) -> DriveProfile:

@@ -1,0 +1,319 @@
+"""Physical motor parameters (R_s, L_d, L_q, psi_m) with confidence intervals, from records and
+the nameplate (maximum a posteriori, numpy only: the gateway learns baselines too).
+
+What records say, robustly and independently of any simulator or controller:
+
+* **steady state** (each record's means; eq. 5 with d/dt = 0):
+  v_d = R_s i_d - omega_e L_q i_q and v_q = R_s i_q + omega_e L_d i_d + omega_e psi_m.
+  Their standard errors come from 50 ms block means (the ripple is correlated, samples are not
+  independent) plus the voltage channel's accuracy (``V_ACCURACY`` of the reading);
+* **dynamics**: T_s/L_x from the current's sample-to-sample response to the voltage (eq. 6 in the
+  ``speed`` form with one intercept per record), least squares compensated for the white noise
+  of the channels (levels read off the zero sequences, :func:`zero_sequence_sigma`); its standard
+  error is inflated for the residual's lag-1 correlation.
+
+At one steady operating point with i_d ~ 0 these leave R_s and psi_m collinear (both only in
+R_s i_q + omega_e psi_m) and L_d unseen in steady state. The nameplate (profile ``[nameplate]``)
+supplies log-normal priors; the estimate minimises the data's and the priors' normalised squared
+residuals over log(R_s, L_d, L_q, psi_m) (Levenberg-Marquardt), and the posterior covariance is
+the inverse Gauss-Newton Hessian there. A parameter the data alone determine to worse than
+``IDENTIFIABLE_REL`` is *not identifiable* from these records: reported by name with the reason,
+and its value comes from the prior (or is withheld when there is none).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from agent.identify import levenberg_marquardt
+from agent.model import Signals
+from agent.profile import DriveProfile
+
+NAMES = ("Rs", "Ld", "Lq", "psi_m")
+UNITS = {"Rs": "ohm", "Ld": "H", "Lq": "H", "psi_m": "Wb"}
+BLOCK_S = 0.05  #: s, blocks whose means give the steady-state standard errors
+V_ACCURACY = 0.005  #: relative accuracy of the voltage channel (0.5 % of reading) ...
+V_FLOOR = 0.2  #: ... plus this many volts
+IDENTIFIABLE_REL = 0.10  #: the data alone must pin a parameter to this relative sd (1 sigma)
+VAGUE_SD = 1.0  #: log-sd (a factor e) of the vague prior where the nameplate says nothing
+COLLINEAR = 0.8  #: |correlation| of two unidentifiable parameters reported as one collinear group
+CONFLICT_Z = 4.0  #: the records pull a parameter this many nameplate sds away: they disagree
+Z95 = 1.959964
+
+
+@dataclass
+class Observation:
+    """What one record says about the parameters (a few numbers; records need not stay in memory)."""
+
+    means: np.ndarray  #: [i_d, i_q, v_d, v_q, omega_e] means (A, V, rad/s)
+    se: np.ndarray  #: standard errors of the v_d, v_q equations (V)
+    gram: list  #: per axis (G, h, M): noise-compensated normal equations of the dynamics, and the
+    #: meat X^T diag(e^2) X of their sandwich covariance
+    ts: float
+
+
+def zero_sequence_sigma(x_abc: np.ndarray) -> float:
+    """Per-phase rms of the channels' white noise, from the zero sequence (x_a + x_b + x_c)/3 of a
+    three-wire machine, which carries only the channels' own noise (variance sigma^2/3). The median
+    of its periodogram (ln 2 sigma0^2 for white noise) ignores lines (a third-harmonic EMF)."""
+    x0 = x_abc.sum(axis=0) / 3.0
+    per = np.abs(np.fft.rfft(x0 - x0.mean())[1:]) ** 2 / x0.size
+    return float(np.sqrt(3.0 * np.median(per) / np.log(2.0)))
+
+
+def _dq_noise_var(sigma: float) -> float:
+    """Variance of one dq component of white per-phase noise sigma (amplitude-invariant Park): 2/3 sigma^2."""
+    return 2.0 / 3.0 * sigma**2
+
+
+def observe(sig: Signals) -> Observation:
+    """Steady-state means and the dynamics' normal equations of one record."""
+    i_d, i_q = sig.i_dq
+    v_d, v_q = sig.v_dq
+    w = sig.omega_e
+    means = np.array([i_d.mean(), i_q.mean(), v_d.mean(), v_q.mean(), w.mean()])
+    nb = max(int(BLOCK_S / sig.ts), 1)
+    k = sig.n // nb
+    se = []
+    for v, i_a, i_b, sgn in ((v_d, i_d, i_q, -1.0), (v_q, i_q, i_d, 1.0)):
+        # the equation's residual per block: v - R i_a - sgn w L i_b varies with R, L; the blocks'
+        # spread of v itself (less its slow trend with the current) bounds it
+        blocks = v[: k * nb].reshape(k, nb).mean(axis=1) if k >= 4 else v
+        spread = float(np.std(blocks, ddof=1) / np.sqrt(blocks.size)) if blocks.size > 1 else abs(v.mean())
+        se.append(np.hypot(spread, V_ACCURACY * abs(v.mean()) + V_FLOOR))
+    sv = zero_sequence_sigma(sig.v_abc) if sig.v_abc is not None else 0.0
+    si = zero_sequence_sigma(sig.i_abc) if sig.i_abc is not None else 0.0
+    gram = []
+    for axis in (0, 1):
+        other = 1 - axis
+        cols = [sig.i_dq[axis, :-1], sig.v_dq[axis, :-1], w[:-1] * sig.i_dq[other, :-1]]
+        if axis == 1:
+            cols.append(w[:-1])
+        x = np.column_stack(cols + [np.ones(sig.n - 1)])
+        y = sig.i_dq[axis, 1:]
+        g = x.T @ x
+        # white channel noise in the regressors (errors in variables): remove its expected share
+        noise = np.zeros(x.shape[1])
+        noise[0] = _dq_noise_var(si)
+        noise[1] = _dq_noise_var(sv)
+        noise[2] = float(np.mean(w**2)) * _dq_noise_var(si)
+        g -= np.diag(noise) * (sig.n - 1)
+        h = x.T @ y
+        theta = np.linalg.lstsq(g, h, rcond=None)[0]
+        e = y - x @ theta
+        xe = x * e[:, None]
+        gram.append((g, h, xe.T @ xe))
+    return Observation(means, np.array(se), gram, sig.ts)
+
+
+@dataclass
+class Prior:
+    """Log-normal prior of one parameter: centre (SI unit) and relative sd, and where it comes from."""
+
+    value: float
+    rel_sd: float
+    source: str
+
+
+def nameplate_priors(profile: DriveProfile) -> dict[str, Prior]:
+    """Priors from the profile's ``[nameplate]`` (see :class:`agent.profile.Nameplate`)."""
+    n = profile.nameplate
+    if n is None:
+        return {}
+    out = {}
+    if n.rs_ohm is not None:
+        t_op = n.rs_temp_c if n.winding_temp_c is None else n.winding_temp_c
+        out["Rs"] = Prior(n.rs_ohm * (1 + 0.00393 * (t_op - n.rs_temp_c)), n.rs_tol_pct / 100,
+                          f"nameplate.rs_ohm ({n.rs_ohm:g} ohm at {n.rs_temp_c:g} C, winding at {t_op:g} C)")
+    psi = n.psi_m(profile.motor.pole_pairs)
+    if psi is not None:
+        out["psi_m"] = Prior(psi, n.psi_m_tol_pct / 100,
+                             "nameplate.psi_m_wb" if n.psi_m_wb is not None else "nameplate.ke_vrms_per_krpm")
+    for name, key in (("Ld", "ld_h"), ("Lq", "lq_h")):
+        if getattr(n, key) is not None:
+            out[name] = Prior(getattr(n, key), n.l_tol_pct / 100, f"nameplate.{key}")
+    return out
+
+
+@dataclass
+class Estimate:
+    """Physical parameters with 95 % intervals; which the records could not determine, and why."""
+
+    values: dict  #: name -> value (SI), None when neither data nor nameplate determine it
+    ci95: dict  #: name -> (low, high)
+    rel_sd: dict  #: name -> posterior relative sd
+    data_rel_sd: dict  #: name -> relative sd from the records alone (inf: not identifiable)
+    determined_by: dict  #: name -> "records", "nameplate" or "records+nameplate"
+    unidentifiable: list = field(default_factory=list)  #: [{"parameters": [...], "reason": str}]
+    problems: list = field(default_factory=list)  #: reasons to refuse the estimate (nonphysical)
+    priors: dict = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        return {"values": self.values, "ci95": {k: list(v) if v else None for k, v in self.ci95.items()},
+                "rel_sd": self.rel_sd, "data_rel_sd": {k: (None if not np.isfinite(v) else v)
+                                                        for k, v in self.data_rel_sd.items()},
+                "determined_by": self.determined_by, "unidentifiable": self.unidentifiable,
+                "problems": self.problems,
+                "priors": {k: {"value": p.value, "rel_sd": p.rel_sd, "source": p.source} for k, p in self.priors.items()}}
+
+
+def _data_residual(obs: list[Observation], dyn: list[tuple[float, float]]):
+    """Residual function of log-parameters z: steady-state rows of every record, dynamic rows."""
+    m = np.array([o.means for o in obs])
+    se = np.array([o.se for o in obs])
+    i_d, i_q, v_d, v_q, w = m.T
+    log_l = np.array([np.log(d[0]) if np.isfinite(d[0]) and d[0] > 0 else np.nan for d in dyn])
+    s_l = np.array([d[1] for d in dyn])
+
+    def residual(z):
+        rs, ld, lq, psi = np.exp(z)
+        rows = [(v_d - (rs * i_d - w * lq * i_q)) / se[:, 0], (v_q - (rs * i_q + w * ld * i_d + w * psi)) / se[:, 1]]
+        dyn_rows = np.where(np.isfinite(log_l) & np.isfinite(s_l), (z[1:3] - np.nan_to_num(log_l)) / s_l, 0.0)
+        return np.concatenate(rows + [dyn_rows])
+
+    return residual
+
+
+def _dynamics(obs: list[Observation]) -> list[tuple[float, float]]:
+    """Per axis (L_x in H, sd of log L_x) from the pooled, noise-compensated dynamics regressions
+    (shared slopes, one intercept per record); (nan, inf) when the voltage does not excite the
+    current's response. The covariance is the sandwich G^-1 M G^-1: the compensated estimator's
+    residual carries the regressors' own noise, which the textbook s^2 G^-1 would leave out."""
+    out = []
+    for axis in (0, 1):
+        parts = [o.gram[axis] for o in obs]
+        p = parts[0][0].shape[0] - 1
+        size = p + len(parts)
+        g, h, meat = np.zeros((size, size)), np.zeros(size), np.zeros((size, size))
+        for j, (gj, hj, mj) in enumerate(parts):
+            idx = list(range(p)) + [p + j]
+            g[np.ix_(idx, idx)] += gj
+            meat[np.ix_(idx, idx)] += mj
+            h[idx] += hj
+        scale = np.sqrt(np.abs(np.diag(g))) + 1e-300
+        gi = np.linalg.pinv(g / np.outer(scale, scale), rcond=1e-12) / np.outer(scale, scale)
+        b = (gi @ h)[1]  # T_s / L_x
+        var_b = (gi @ meat @ gi)[1, 1]
+        if not (np.isfinite(b) and b > 0 and np.isfinite(var_b)):
+            out.append((np.nan, np.inf))
+            continue
+        out.append((obs[0].ts / b, float(np.sqrt(max(var_b, 0.0)) / b)))
+    return out
+
+
+def _collinear_reason(names: list[str], means: np.ndarray) -> str:
+    fe_spread = np.ptp(means[:, 4]) / max(abs(means[:, 4]).mean(), 1e-9)
+    iq_spread = np.ptp(means[:, 1]) / max(abs(means[:, 1]).mean(), 1e-9)
+    one_point = fe_spread < 0.05 and iq_spread < 0.2
+    s = set(names)
+    if {"Rs", "psi_m"} <= s:
+        where = "at one operating point" if one_point else "over these operating points"
+        return (f"R_s and psi_m are collinear {where} (both only in R_s i_q + omega_e psi_m); records at a "
+                f"second load (i_q at least 30 % apart) or a speed step separate them, or give "
+                f"nameplate.rs_ohm or nameplate.psi_m_wb")
+    if s == {"Ld"}:
+        return ("L_d: with i_d ~ 0 it is absent from the steady state, and the voltage barely excites the d "
+                "current; a d-current step, field weakening or PWM ripple in the records reveals it, or give "
+                "nameplate.ld_h")
+    if s == {"Lq"}:
+        return ("L_q: too little voltage response on q and too little q current; records under load reveal it, "
+                "or give nameplate.lq_h")
+    if s == {"Rs"}:
+        return "R_s: its voltage drop is too small against the voltage channel's accuracy; give nameplate.rs_ohm"
+    if s == {"psi_m"}:
+        return "psi_m: the back-EMF is not separated from the other terms; give nameplate.psi_m_wb"
+    return " and ".join(names) + " are not separated by these records; records at other loads and speeds help"
+
+
+def estimate(obs: list[Observation], profile: DriveProfile, priors: dict[str, Prior] | None = None) -> Estimate:
+    """MAP estimate of (R_s, L_d, L_q, psi_m) from records' observations and nameplate priors."""
+    priors = nameplate_priors(profile) if priors is None else priors
+    dyn = _dynamics(obs)
+    data_res = _data_residual(obs, dyn)
+    means = np.array([o.means for o in obs])
+    # where the nameplate says nothing: a vague prior (log-sd VAGUE_SD) around a plausible point from
+    # the steady state: R_s at a 5 % voltage drop, psi_m from v_q, L_q from v_d, L_d from the dynamics
+    w = float(np.mean(means[:, 4]))
+    i_q = float(np.mean(means[:, 1]))
+    v_abs = float(np.mean(np.hypot(means[:, 2], means[:, 3])))
+    i_abs = float(np.mean(np.hypot(means[:, 0], means[:, 1])))
+    guess = {"Rs": 0.05 * v_abs / max(i_abs, 1e-6), "Ld": dyn[0][0],
+             "Lq": -np.mean(means[:, 2]) / (w * i_q) if abs(w * i_q) > 0 else np.nan,
+             "psi_m": np.mean(means[:, 3]) / w if w else np.nan}
+    guess = {k: v if np.isfinite(v) and v > 0 else (dyn[1][0] if k == "Ld" and np.isfinite(dyn[1][0]) else 0.01)
+             for k, v in guess.items()}
+    centre = np.array([priors[k].value if k in priors else guess[k] for k in NAMES])
+    sd = np.array([priors[k].rel_sd if k in priors else VAGUE_SD for k in NAMES])
+    z0 = np.log(centre)
+
+    def residual(z):
+        return np.concatenate((data_res(z), (z - z0) / sd))
+
+    z = levenberg_marquardt(residual, z0)
+    jac = _jacobian(residual, z)
+    post = np.sqrt(np.clip(np.diag(np.linalg.pinv(jac.T @ jac)), 0, None))
+    # what the records alone say: the marginal sds under the vague prior on every parameter
+    jd = _jacobian(data_res, z)
+    cov_v = np.linalg.inv(jd.T @ jd + np.eye(4) / VAGUE_SD**2)
+    data_sd = np.sqrt(np.clip(np.diag(cov_v), 0, None))
+    corr = cov_v / np.outer(data_sd, data_sd)
+    weak = data_sd > IDENTIFIABLE_REL
+    groups = []
+    for j in np.flatnonzero(weak):
+        close = [k for k in range(4) if k == j or abs(corr[j, k]) > COLLINEAR]
+        names = [NAMES[k] for k in close if weak[k]]
+        if names not in [g["parameters"] for g in groups]:
+            groups.append({"parameters": names, "reason": _collinear_reason([NAMES[k] for k in close], means),
+                           "correlated": {NAMES[k]: float(data_sd[k]) for k in close if not weak[k]},
+                           "from_nameplate": all(n in priors for n in names)})
+    data_sd = np.where(weak, np.inf, data_sd)
+    values, ci, rel, by = {}, {}, {}, {}
+    for j, name in enumerate(NAMES):
+        seen = np.isfinite(data_sd[j])
+        has_prior = name in priors
+        by[name] = "records+nameplate" if seen and has_prior else "records" if seen else "nameplate" if has_prior else None
+        if by[name] is None:
+            values[name], ci[name], rel[name] = None, None, None
+            continue
+        values[name] = float(np.exp(z[j]))
+        ci[name] = (float(np.exp(z[j] - Z95 * post[j])), float(np.exp(z[j] + Z95 * post[j])))
+        rel[name] = float(post[j])
+    problems = _problems(z, z0, sd, priors, means, profile)
+    return Estimate(values, ci, rel, {n: float(data_sd[j]) for j, n in enumerate(NAMES)}, by, groups, problems,
+                    dict(priors))
+
+
+def _jacobian(fun, z: np.ndarray, h: float = 1e-6) -> np.ndarray:
+    r0 = fun(z)
+    return np.column_stack([(fun(z + h * e) - r0) / h for e in np.eye(z.size)])
+
+
+def _problems(z, z0, sd, priors, means, profile) -> list[str]:
+    """Reasons the estimate is not physical: records against nameplate, values outside physical ranges."""
+    out = []
+    for j, name in enumerate(NAMES):  # prior-data conflict: the records pull it far outside its tolerance
+        p = priors.get(name)
+        if p is not None and abs(z[j] - z0[j]) > CONFLICT_Z * sd[j]:
+            out.append(f"{name}: the records give {np.exp(z[j]):.4g} {UNITS[name]}, {p.source} says "
+                       f"{p.value:.4g} {UNITS[name]} +- {100 * p.rel_sd:.0f} %")
+    rs, ld, lq, psi = np.exp(z)  # the estimate itself, whether or not the records pin each value
+    w = float(np.mean(np.abs(means[:, 4])))
+    v = float(np.mean(np.hypot(means[:, 2], means[:, 3])))
+    for name, l in (("Ld", ld), ("Lq", lq)):
+        if not 1e-4 <= l / rs <= 2.0:
+            out.append(f"{name}/Rs = {l / rs:.3g} s is outside 0.1 ms .. 2 s (no motor has that time constant)")
+    if w > 0 and psi * w < 0.05 * v:
+        out.append(f"psi_m = {psi:.3g} Wb gives a back-EMF of {psi * w:.3g} V, under 5 % of the {v:.3g} V applied "
+                   "while current flows: a PMSM's magnet flux cannot be that small")
+    if v > 0:
+        i = float(np.mean(np.hypot(means[:, 0], means[:, 1])))
+        if rs * i > 0.5 * v:
+            out.append(f"Rs = {rs:.3g} ohm would drop {rs * i:.3g} V of the {v:.3g} V applied")
+    m = profile.motor
+    if m.rated_voltage_v and m.rated_current_a:
+        z_base = m.rated_voltage_v / np.sqrt(3) / m.rated_current_a
+        if not 1e-3 * z_base <= rs <= 0.5 * z_base:
+            out.append(f"Rs = {rs:.3g} ohm is outside 0.001..0.5 of the nameplate impedance ({z_base:.3g} ohm)")
+    return out
