@@ -158,6 +158,11 @@ def test_bounded_lstsq_matches_scipy():
     ref = scipy.optimize.lsq_linear(a, y, bounds=(lower, np.inf)).x
     np.testing.assert_allclose(got, ref, atol=1e-8)
     assert got[1] == 0.0 and got[3] == 0.0
+    upper = np.array([0.5, np.inf, 0.2, np.inf, 1.0])  # box: three held at their upper bound
+    got = bounded_lstsq(a.T @ a, a.T @ y, lower, upper)
+    ref = scipy.optimize.lsq_linear(a, y, bounds=(lower, upper)).x
+    np.testing.assert_allclose(got, ref, atol=1e-8)
+    assert got[0] == 0.5 and got[2] == 0.2 and got[4] == 1.0
 
 
 def test_workbench_angle_follows_the_rotor():

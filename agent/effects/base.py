@@ -15,13 +15,31 @@ from agent.model import Signals, Term
 @dataclass(frozen=True)
 class Param:
     """One linear parameter of an effect: its name, unit, meaning, a typical magnitude (used to
-    judge whether records can reveal the effect at a realistic size) and a physical lower bound."""
+    judge whether records can reveal the effect at a realistic size) and its physical range
+    [``lower``, ``upper``], in the parameter's unit or, with ``scale``, in multiples of that base
+    value of the drive (``i_rated`` A peak, ``Rs_q`` ohm, ``Lq`` H, ``psi_m`` Wb, ``v_rated`` V peak) or
+    of a function of them."""
 
     name: str
     unit: str
     meaning: str
     typical: float
-    lower: float = -np.inf  #: physical lower bound of the value (e.g. 0: the effect has a sign)
+    lower: float = -np.inf  #: physical lower bound (e.g. 0: the effect has a sign)
+    upper: float = np.inf  #: physical upper bound
+    scale: str | Callable[[dict], float] = ""  #: base value (key or function of them) the bounds multiply
+
+    def bounds(self, base: dict) -> tuple[float, float]:
+        """(lower, upper) in the parameter's unit for the drive's ``base`` values (unbounded where
+        the base value is unknown)."""
+        if not self.scale:
+            return self.lower, self.upper
+        try:
+            b = self.scale(base) if callable(self.scale) else base.get(self.scale)
+        except (KeyError, TypeError, ZeroDivisionError):
+            b = None
+        if b is None or not np.isfinite(b) or b <= 0:
+            return (self.lower if self.lower in (0.0, -np.inf) else -np.inf), np.inf
+        return self.lower * b if np.isfinite(self.lower) else -np.inf, self.upper * b
 
 
 @dataclass(frozen=True)

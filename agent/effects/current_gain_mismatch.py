@@ -17,8 +17,8 @@ EFFECT = Effect(
     physics="A current sensor's gain differs from phase a's by g (dimensionless): i_x,meas = (1 + g_x) i_x "
             "for x = b, c (a common gain error is indistinguishable from the motor parameters).",
     kind="output",
-    params=(Param("g_b", "-", "relative gain error of phase b", 0.03),
-            Param("g_c", "-", "relative gain error of phase c", 0.03)),
+    params=(Param("g_b", "-", "relative gain error of phase b", 0.03, -0.1, 0.1),
+            Param("g_c", "-", "relative gain error of phase c", 0.03, -0.1, 0.1)),
     columns=columns,
     report=lambda v, ctx: {"gain_b": float(v[0]), "gain_c": float(v[1])},
     signature="2 fe ripple and a DC shift in dq; a negative-sequence fe line in the phase residual",

@@ -23,8 +23,8 @@ EFFECT = Effect(
     physics="The measured phase currents carry constant offsets (A); their differential part is a fixed "
             "alpha-beta vector o = (o_alpha, o_beta) added to the measurement, |o| in A.",
     kind="output",
-    params=(Param("o_alpha", "A", "offset vector, alpha component", 0.05),
-            Param("o_beta", "A", "offset vector, beta component", 0.05)),
+    params=(Param("o_alpha", "A", "offset vector, alpha component", 0.05, -0.05, 0.05, "i_rated"),
+            Param("o_beta", "A", "offset vector, beta component", 0.05, -0.05, 0.05, "i_rated")),
     columns=columns, report=report,
     signature="DC in the phase residual, 1 fe in dq (rotating at -fe), same in every record",
     dq_orders=(1,), abc_orders=(0,),

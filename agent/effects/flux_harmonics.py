@@ -18,8 +18,8 @@ EFFECT = Effect(
             "(5th and 7th space harmonics), psi_pm,d = psi_m + psi_6 cos(6 theta_e + phi) (Wb), "
             "which adds 6 omega_e psi_6 on d and omega_e psi_6 on q (V).",
     kind="voltage",
-    params=(Param("psi_6c", "Wb", "6th-harmonic flux, cosine part", 0.005),
-            Param("psi_6s", "Wb", "6th-harmonic flux, sine part", 0.005)),
+    params=(Param("psi_6c", "Wb", "6th-harmonic flux, cosine part", 0.005, -0.1, 0.1, "psi_m"),
+            Param("psi_6s", "Wb", "6th-harmonic flux, sine part", 0.005, -0.1, 0.1, "psi_m")),
     columns=columns,
     report=lambda v, ctx: {"psi_6_Wb": amplitude(v), "phase_rad": float(np.arctan2(v[1], v[0]))},
     signature="6 fe in dq (5th and 7th in abc), locked to the rotor angle, amplitude growing with speed",

@@ -17,7 +17,8 @@ EFFECT = Effect(
     physics="Dead time and switch drop make each phase voltage U_dt (V) short in the direction of its "
             "current, dv_x = -U_dt sign(i_x) (common mode removed), U_dt ~ U_dc t_dead f_sw + V_drop.",
     kind="voltage",
-    params=(Param("U_dt", "V", "voltage lost per phase at the dead time", 6.0, lower=0.0),),
+    params=(Param("U_dt", "V", "voltage lost per phase at the dead time", 6.0, lower=0.0, upper=0.1,
+                  scale="v_rated"),),
     columns=columns,
     report=lambda v, ctx: {"U_dt_V": float(v[0])},
     signature="6k fe ripple in dq (5th, 7th, 11th, 13th in abc) locked to the current zero crossings; "

@@ -26,7 +26,8 @@ EFFECT = Effect(
     physics="The q-axis flux saturates, psi_q = L_q i_q (1 - s (i_q/I_rated)^2): the chord inductance "
             "psi_q/i_q drops by the fraction s at rated current (dimensionless).",
     kind="voltage",
-    params=(Param("lambda", "H", "L_q s (I_REF/I_rated)^2, the cubic flux coefficient", 5e-3, lower=0.0),),
+    params=(Param("lambda", "H", "L_q s (I_REF/I_rated)^2, the cubic flux coefficient", 5e-3,
+                  0.0, 0.5, lambda b: b["Lq"] * (I_REF / b["i_rated"]) ** 2),),
     columns=columns, report=report,
     signature="d-axis residual that grows with the cube of the q current: visible across loads, "
               "absorbed into L_q at any single load",

@@ -20,7 +20,7 @@ EFFECT = Effect(
             "dR/dt in ohm/s (the winding warms by dR/dt / (R_s 0.0039/K) K/s); the model's R_s is the "
             "mid-record value.",
     kind="voltage",
-    params=(Param("dR_dt", "ohm/s", "rate of change of R_s", 0.2),),
+    params=(Param("dR_dt", "ohm/s", "rate of change of R_s", 0.2, -0.5, 0.5, "Rs_q"),),
     columns=columns, report=report,
     signature="residual growing over time within each record (time-binned residual), mostly on q",
     reveals="records long enough for the resistance to change (seconds), with load current",

@@ -47,8 +47,9 @@ EFFECT = Effect(
             "signal does not carry: it misses the back-EMF ripple psi_m delta omega_e on q (V) and "
             "L_q i_q delta omega_e on d.",
     kind="voltage",
-    params=(Param("L_w", "H", "L_q as the speed ripple's d-axis term sees it (= L_q when the ripple is real)", 0.03),
-            Param("psi_w", "Wb", "psi_m as the speed ripple's q-axis term sees it (= psi_m)", 0.25)),
+    params=(Param("L_w", "H", "L_q as the speed ripple's d-axis term sees it (= L_q when the ripple is real)", 0.03,
+                  0.0, 2.0, "Lq"),
+            Param("psi_w", "Wb", "psi_m as the speed ripple's q-axis term sees it (= psi_m)", 0.25, 0.0, 2.0, "psi_m")),
     columns=columns, report=report,
     signature="f_r = fe/p in dq (fe +- f_r in the phase residual, the driving-gear line k = 1), in "
               "phase with the ripple of the angle's rotation",

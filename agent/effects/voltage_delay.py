@@ -17,7 +17,7 @@ EFFECT = Effect(
     physics="The voltage samples lag the current samples by d sampling periods (DAQ anti-alias "
             "filters of different group delay): v_meas(k) = v(k - d), d in samples (0..1).",
     kind="voltage",
-    params=(Param("d", "samples", "voltage-channel delay behind the current channel", 1.0),),
+    params=(Param("d", "samples", "voltage-channel delay behind the current channel", 1.0, lower=0.0, upper=2.0),),
     columns=columns,
     report=lambda v, ctx: {"delay_samples": float(v[0]), "delay_us": float(v[0] * ctx["ts"] * 1e6)},
     signature="residual correlated with the voltage increment v(k+1) - v(k) (cross-correlation with the "

@@ -25,6 +25,11 @@ def _load(args, model_path):
     return base, recs, prepare(recs, base.profile)
 
 
+def _pct(v) -> str:
+    """The one error figure as text: a percentage, or "unstable" (free run diverged)."""
+    return "unstable" if v is None else f"{100 * v:.3f} %"
+
+
 def _warn(doc: dict) -> None:
     for w in doc.get("warnings", []):
         log.warning("%s", w)
@@ -54,10 +59,15 @@ def cmd_compare(args) -> None:
         doc["report"] = str(write_report(args.report, f"Model {args.model[0]} against {len(preps)} record(s)",
                                          doc, data, ranking))
     n = doc["nrmse"]
-    lines = [f"{doc['mode']} NRMSE: d {100 * n['d']:.3f} %, q {100 * n['q']:.3f} %, total {100 * n['total']:.3f} %",
-             "fit %: " + ", ".join(f"{k} {v:.1f}" for k, v in doc["fit_pct"].items())]
+    cov = doc["coverage"]
+    lines = ([f"{doc['mode']} NRMSE (held-out): d {100 * n['d']:.3f} %, q {100 * n['q']:.3f} %, "
+              f"total {100 * n['total']:.3f} %", "fit %: " + ", ".join(f"{k} {v:.1f}" for k, v in doc["fit_pct"].items())]
+             if n else [doc["note"]])
+    lines.append(f"records cover load {cov['load_pct_range'][0]:.0f}-{cov['load_pct_range'][1]:.0f} %, fe "
+                 f"{cov['fe_hz_range'][0]:.1f}-{cov['fe_hz_range'][1]:.1f} Hz; the model's operating point: load "
+                 f"{cov['model']['load_pct']:.0f} %, fe {cov['model']['fe_hz']:.1f} Hz")
     lines += [f"  fe {r['fe_hz']:.1f} Hz load {r['load_pct']:.0f} %: "
-              + ", ".join(f"{k} {100 * v:.3f} %" for k, v in r["nrmse"].items()) for r in doc["table"]]
+              + ", ".join(f"{k} {_pct(v)}" for k, v in r["nrmse"].items()) for r in doc["table"]]
     lines += ["where: " + (w.get("summary") or f"{w['freq_hz']:.1f} Hz {w['label']}") for w in doc["where"]]
     lines += [f"report: {doc['report']}"] if args.report else []
     _emit(args, doc, "\n".join(lines))
@@ -79,12 +89,15 @@ def cmd_explain(args) -> None:
         cdoc, data = compare(base, preps)
         cdoc["warnings"] = doc["warnings"]
         doc["report"] = str(write_report(args.report, f"Effects missing from {args.model}", cdoc, data, doc))
-    lines = [f"NRMSE (held-out, free run): model {100 * doc['nrmse_before']:.3f} %, refit without effects "
-             f"{100 * doc['nrmse_control']:.3f} %"]
+    lines = [f"NRMSE (held-out, free run): model {_pct(doc['nrmse_before'])}, control "
+             f"{_pct(doc['nrmse_control'])}" + (" (the model itself)" if doc["control_is_model"] else
+                                               " (the model refitted without new effects)")]
+    lines += [doc["note_before"]] if doc.get("note_before") else []
     for r in doc["candidates"]:
-        mark = "SIGNIFICANT" if r["significant"] else "not identifiable" if not r["identifiable"] else ""
-        lines.append(f"  {r['effect']:22s} explains {100 * r['explained_fraction']:6.1f} %  NRMSE "
-                     f"{100 * r['nrmse_after']:.3f} %  {mark:16s} "
+        mark = ("SIGNIFICANT" if r["significant"] else "not identifiable" if not r["identifiable"]
+                else "at bound" if r["at_bound"] else "")
+        share = "   n/a" if r["explained_fraction"] is None else f"{100 * r['explained_fraction']:6.1f}"
+        lines.append(f"  {r['effect']:22s} explains {share} %  NRMSE {_pct(r['nrmse_after'])}  {mark:16s} "
                      + ", ".join(f"{k} {v:.4g}" for k, v in r["params"].items()))
     _emit(args, doc, "\n".join(lines))
 
@@ -96,6 +109,8 @@ def cmd_add_effect(args) -> None:
     from agent.workbench.explain import add_effects
 
     effects = [get(e).id for e in args.effect]
+    if Path(args.out).exists():
+        raise InputError(f"--out {args.out}: exists; a model version is never overwritten (choose a new file)")
     base, recs, preps = _load(args, args.model)
     ref, fig = add_effects(base, preps, effects)
     _warn(fig)
@@ -120,8 +135,8 @@ def cmd_add_effect(args) -> None:
            "th3_change": float((new.thresholds.th3.mean() / base.thresholds.th3.mean()) - 1)
            if new.thresholds.th3.size == base.thresholds.th3.size else None}
     _emit(args, doc, (f"wrote {args.out} (version {entry['version']}, effects {', '.join(entry['effects'])})\n"
-                      f"held-out free-run NRMSE: before {100 * fig['nrmse_before']:.3f} %, refit without "
-                      f"{100 * fig['nrmse_control']:.3f} %, with {'+'.join(effects)} {100 * fig['nrmse_after']:.3f} %\n"
+                      f"held-out free-run NRMSE: before {_pct(fig['nrmse_before'])}, control "
+                      f"{_pct(fig['nrmse_control'])}, with {'+'.join(effects)} {_pct(fig['nrmse_after'])}\n"
                       + "\n".join(f"  {e}: " + ", ".join(f"{k} {v:.4g}" for k, v in p.items())
                                   for e, p in fig["params"].items())))
 
@@ -135,8 +150,8 @@ def cmd_history(args) -> None:
     lines = [f"{args.model}: effects {', '.join(doc['effects']) or '(none)'}"]
     for v in versions:
         lines.append(f"  v{v['version']}: " + (v.get("note") or
-                     f"+{'+'.join(v['added'])} from {v['parent']} at {v['timestamp']}: NRMSE "
-                     f"{100 * v['nrmse_before']:.3f} % -> {100 * v['nrmse_after']:.3f} %"))
+                     f"+{'+'.join(v['added'])} from {v['parent']} at {v['timestamp']}: held-out NRMSE "
+                     f"{_pct(v['nrmse_before'])} -> {_pct(v['nrmse_after'])}"))
     _emit(args, doc, "\n".join(lines))
 
 

@@ -1,12 +1,14 @@
 """``model compare``: how well a model reproduces records, and where and why it fails.
 
-Fit figures per axis (d, q) and per phase, as NRMSE (:func:`agent.model.nrmse`'s normalisation) and
-as fit % = 100 (1 - ||y - y_hat|| / ||y - mean(y)||) (MATLAB ``compare``), for one-step prediction
-and free-run simulation; with several models and operating points a Table-5-like matrix.
-"Where": the phase-residual spectrum's largest peaks labelled by harmonic order of fe (abc and dq),
-fault families and the effects with that signature; the residual binned over electrical angle,
-phase current and time; whiteness and input cross-correlation of the one-step residual with a
-99 % band (MATLAB ``resid``).
+The fit figure is the workbench's one error figure (:func:`agent.workbench.fitting.heldout`,
+docs/workbench.md "One error figure"): NRMSE on the held-out second part of each record, free run
+(or one-step with ``--one-step``), per axis (d, q), total and per phase, and fit % = 100 (1 - NRMSE);
+the same model on the same records gives the same figure here, in ``explain``, ``add-effect``,
+``history`` and the report. An unstable free run has no figure, only a note. With several models
+and operating points: a Table-5-like matrix. "Where": the phase-residual spectrum's largest peaks
+labelled by harmonic order of fe (abc and dq), fault families and the effects with that signature;
+the residual binned over electrical angle, phase current and time; whiteness and input
+cross-correlation of the one-step residual with a 99 % band (MATLAB ``resid``).
 """
 
 from __future__ import annotations
@@ -14,11 +16,11 @@ from __future__ import annotations
 import numpy as np
 
 from agent.baseline import residual_spectra
+from agent.decision import operating_point_notes
 from agent.effects import EFFECTS
 from agent.frames import dq_to_abc
 from agent.frequencies import fault_frequencies
-from agent.model import nrmse
-from agent.workbench.fitting import Prepared
+from agent.workbench.fitting import Prepared, fit_pct, flux_adapted, heldout
 
 MAX_LAG = 40  #: samples, correlation lags
 Z99 = 2.576  #: two-sided 99 % normal quantile
@@ -26,44 +28,42 @@ N_PEAKS = 6
 ANGLE_BINS, CURRENT_BINS, TIME_BINS = 36, 24, 10
 
 
-def fit_pct(y: np.ndarray, y_hat: np.ndarray) -> float:
-    """100 (1 - ||y - y_hat|| / ||y - mean(y)||) over the last axis (MATLAB compare's fit)."""
-    return float(100.0 * (1.0 - np.linalg.norm(y - y_hat) / max(np.linalg.norm(y - y.mean(axis=-1, keepdims=True)),
-                                                               1e-300)))
-
-
-def _figures(preps: list[Prepared], preds: list[np.ndarray]) -> dict:
-    meas = np.hstack([p.sig.i_dq for p in preps])
-    out = {"nrmse": nrmse(meas, np.hstack(preds))}
-    out["nrmse"].update({ph: v for ph, v in zip("abc", _phase_nrmse(preps, preds))})
-    fit = {}
-    for ax, name in enumerate("dq"):
-        fit[name] = float(np.mean([fit_pct(p.sig.i_dq[ax], y[ax]) for p, y in zip(preps, preds)]))
-    for ph, name in enumerate("abc"):
-        fit[name] = float(np.mean([fit_pct(p.sig.i_abc[ph], dq_to_abc(y, p.sig.theta_e)[ph])
-                                   for p, y in zip(preps, preds)]))
-    out["fit_pct"] = fit
+def figures(model, preps: list[Prepared]) -> dict:
+    """{"free_run": {nrmse, fit_pct}, "one_step": {nrmse, fit_pct}, "stable", "note"?}: the one figure."""
+    h = heldout(model, preps)
+    out = {"free_run": {"nrmse": h["nrmse"], "fit_pct": fit_pct(h["nrmse"])},
+           "one_step": {"nrmse": h["one_step"], "fit_pct": fit_pct(h["one_step"])}, "stable": h["stable"]}
+    if not h["stable"]:
+        out["note"] = h["note"]
     return out
 
 
-def _phase_nrmse(preps, preds) -> list[float]:
-    err = np.hstack([p.sig.i_abc - dq_to_abc(y, p.sig.theta_e) for p, y in zip(preps, preds)])
-    ref = np.sqrt(np.mean(np.sum(np.hstack([p.sig.i_dq for p in preps]) ** 2, axis=0)))
-    return (np.sqrt(np.mean(err**2, axis=1)) / ref).tolist()
+def _total(model, preps):
+    n = heldout(model, preps)["nrmse"]
+    return None if n is None else n["total"]
+
+
+def coverage(baseline, preps: list[Prepared]) -> dict:
+    """Which operating points the records cover, and how far they are from the model's."""
+    op = baseline.operating_point
+    points = [{"record": p.source, "fe_hz": p.op["fe_hz"], "load_pct": p.op["load_pct"],
+               "notes": operating_point_notes(op, p.op)} for p in preps]
+    loads = [p.op["load_pct"] for p in preps]
+    fes = [p.op["fe_hz"] for p in preps]
+    return {"model": {"fe_hz": op.get("fe_hz"), "load_pct": op.get("load_pct")}, "records": points,
+            "load_pct_range": [min(loads), max(loads)], "fe_hz_range": [min(fes), max(fes)],
+            "far": [p["record"] for p in points if p["notes"]]}
 
 
 def table(models: dict, preps: list[Prepared]) -> list[dict]:
-    """Rows: records grouped by operating point (fe 0.5 Hz, load 5 %); free-run NRMSE per model."""
+    """Rows: records grouped by operating point (fe 0.5 Hz, load 5 %); the held-out free-run NRMSE
+    per model (None: unstable)."""
     groups: dict[tuple, list[Prepared]] = {}
     for p in preps:
         groups.setdefault((round(p.op["fe_hz"] * 2) / 2, 5 * round(p.op["load_pct"] / 5)), []).append(p)
-    rows = []
-    for (fe, load), ps in sorted(groups.items()):
-        meas = np.hstack([p.sig.i_dq for p in ps])
-        rows.append({"fe_hz": fe, "load_pct": load, "records": len(ps),
-                     "nrmse": {name: nrmse(meas, np.hstack([b.model.simulate(p.sig) for p in ps]))["total"]
-                               for name, b in models.items()}})
-    return rows
+    return [{"fe_hz": fe, "load_pct": load, "records": len(ps),
+             "nrmse": {name: _total(b.model, ps) for name, b in models.items()}}
+            for (fe, load), ps in sorted(groups.items())]
 
 
 def _label(f: float, fe: float, df: float, families: dict) -> tuple[str, list[str]]:
@@ -168,13 +168,21 @@ def where(baseline, preps: list[Prepared], preds: list[np.ndarray]) -> tuple[lis
 def compare(baseline, preps: list[Prepared], one_step: bool = False, others: dict | None = None) -> tuple[dict, dict]:
     """The CONTRACT document of ``model compare`` (free-run unless ``one_step``) and plot data."""
     model = baseline.model
-    free = [model.simulate(p.sig) for p in preps]
-    step = [model.one_step(p.sig) for p in preps]
-    figs = {"free_run": _figures(preps, free), "one_step": _figures(preps, step)}
-    chosen = figs["one_step" if one_step else "free_run"]
-    found, data = where(baseline, preps, free)
-    doc = {"nrmse": chosen["nrmse"], "fit_pct": chosen["fit_pct"], "mode": "one_step" if one_step else "free_run",
-           "modes": figs, "where": found, "table": table({"model": baseline, **(others or {})}, preps),
+    figs = figures(model, preps)
+    mode = "one_step" if one_step else "free_run"
+    with np.errstate(all="ignore"):
+        free = [flux_adapted(model, p) for p in preps]
+    shown = free if figs["stable"] else [model.one_step(p.sig) for p in preps]
+    found, data = where(baseline, preps, shown)
+    doc = {"nrmse": figs[mode]["nrmse"], "fit_pct": figs[mode]["fit_pct"], "mode": mode,
+           "modes": {k: figs[k] for k in ("free_run", "one_step")}, "stable": figs["stable"], "where": found,
+           "table": table({"model": baseline, **(others or {})}, preps), "coverage": coverage(baseline, preps),
            "records": [p.source for p in preps]}
-    data["traces"] = [(p.sig, y) for p, y in zip(preps[:1], free)]
+    if not figs["stable"]:
+        doc["note"] = figs["note"]
+    data["traces"] = [(preps[0].sig, shown[0])]
+    for name, b in (others or {}).items():
+        with np.errstate(all="ignore"):
+            data["traces"].append((preps[0].sig, flux_adapted(b.model, preps[0]), name))
+    data["split"] = preps[0].split
     return doc, data

@@ -1,13 +1,22 @@
 """Rank the library's effects by the share of a model's error each explains on held-out data, and
 refit a model with chosen effects (``model explain`` / ``model add-effect``).
 
-Fair comparison: every candidate is the *control* refit (the model's own structure, refitted on the
-same fit segments: this alone absorbs a change of load or temperature) plus one effect; the share
-it explains is ``1 - SSE(candidate) / SSE(control)`` on the held-out segments. Significance: a
-one-sided t-test over ``BLOCK_S`` blocks of the held-out error (control minus candidate),
-Bonferroni-corrected over the candidates, plus a practical floor ``MIN_EXPLAINED``. An effect
-the records cannot pin down (:attr:`agent.workbench.fitting.Refit.identifiable`) is reported as not
-identifiable from these records, with the data that would reveal it.
+Fair comparison: every candidate is the *control* (the model's own structure refitted on the same
+fit segments, or the model itself where the refit is not better: this alone absorbs a change of
+load or temperature) plus one effect, and never worse than the control on the fit segments (a
+candidate refit that is, is the control with the effect at zero). The share it explains is
+``1 - SSE(candidate) / SSE(control)`` on the held-out segments (the one error figure,
+:func:`agent.workbench.fitting.heldout`).
+
+Significance (docs/workbench.md, "Claims"): the held-out error of one record is dominated by slow
+components (a magnet-temperature or resistance mismatch is a constant over the record), so its
+``BLOCK_S`` blocks are not independent samples; the records are. The test is a one-sided t-test of
+the per-block share explained, 1 - SSE_candidate / SSE_control, whose sample size is the *effective* one, from the
+blocks' autocorrelation within records (:func:`effective_size`), never more than the blocks and
+never less than the records; Holm's step-down correction over the candidates keeps the
+family-wise level ``ALPHA``; a practical floor ``MIN_EXPLAINED`` applies. An effect the records
+cannot pin down (:attr:`agent.workbench.fitting.Refit.identifiable`) or whose fitted parameter sits
+on its physical bound is never significant; the row says which, and which records would reveal it.
 """
 
 from __future__ import annotations
@@ -21,9 +30,10 @@ from agent.decision import operating_point_notes
 from agent.effects import EFFECTS
 from agent.effects import get as get_effect
 from agent.errors import InputError
-from agent.workbench.fitting import NONLINEAR, Prepared, heldout, refit
+from agent.workbench.fitting import NONLINEAR, Prepared, Refit, fit_cost, heldout, refit
 
-ALPHA = 0.01  #: family-wise significance level of the block test
+ALPHA = 0.01  #: family-wise significance level of the test over records
+MIN_RECORDS = 3  #: records needed for the test
 MIN_EXPLAINED = 0.10  #: an effect must explain at least this share of the control's held-out error
 CONTROL_NFEV = 100  #: iteration budget of the control refit (the candidates start from its result)
 
@@ -55,81 +65,215 @@ def _fe(preps):
     return float(np.mean([p.op["fe_hz"] for p in preps]))
 
 
-def _block_p(ctrl_blocks: np.ndarray, cand_blocks: np.ndarray) -> float:
-    """One-sided p-value that the candidate lowers the held-out error (paired t-test over blocks)."""
-    d = ctrl_blocks - cand_blocks
-    if d.size < 3 or not np.any(d):
+def drive_base(model, profile) -> dict:
+    """The drive's base values that effect parameters are bounded by
+    (:meth:`agent.effects.base.Param.bounds`): rated current and phase voltage (peak), and the
+    model's R_s,q, L_q and psi_m where physical."""
+    m = profile.motor
+    phys = model.physical()
+    base = {k: phys.get(src) for k, src in (("Rs_q", "Rs_q"), ("Lq", "Lq"), ("psi_m", "psi_m"))}
+    base = {k: float(v) for k, v in base.items() if v is not None and np.isfinite(v) and v > 0}
+    psi = base.get("psi_m", 0.0)
+    if m.rated_current_a:
+        base["i_rated"] = m.rated_current_a * np.sqrt(2)
+    elif psi > 0 and m.rated_torque_nm:
+        base["i_rated"] = m.rated_torque_nm / (1.5 * m.pole_pairs * psi)
+    if m.rated_voltage_v:
+        base["v_rated"] = m.rated_voltage_v * np.sqrt(2.0 / 3.0)
+    return base
+
+
+def _as_refit(model, preps: list[Prepared]) -> Refit:
+    """The model itself as a contender for the control: its own parameters, its fit-segment cost."""
+    have = tuple(model.meta.get("effects", []))
+    p = model.physical()
+    phys = {"Rs_d": p["Rs_d"], "Rs_q": p["Rs_q"], "Ld": p["Ld"], "Lq": p["Lq"], "Lq_x": p["Lq_from_d"],
+            "psi_m": p["psi_m"]}
+    values = {e: get_effect(e).values_from_model(model) for e in have}
+    return Refit(have, model, phys, values, fit_cost(model, preps), {e: (True, {"stage": "model"}) for e in have},
+                 {e: False for e in have})
+
+
+def _zero_effect(ctrl: Refit, eid: str, preps: list[Prepared]) -> Refit:
+    """``ctrl`` with effect ``eid`` added at zero: the same model, the floor of any candidate."""
+    m = ctrl.model
+    extra_d, extra_q = get_effect(eid).terms()
+    n = len(get_effect(eid).params)
+    model = type(m)(m.form, m.ts, np.concatenate((m.theta_d, np.zeros(n))), np.concatenate((m.theta_q, np.zeros(n))),
+                    m.extra_d + extra_d, m.extra_q + extra_q, fe_hz=m.fe_hz, meta=dict(m.meta))
+    model.meta["effects"] = list(ctrl.effects) + [eid]
+    return Refit(ctrl.effects + (eid,), model, dict(ctrl.phys), {**ctrl.values, eid: np.zeros(n)}, ctrl.cost,
+                 {**ctrl.identifiable, eid: (False, {"stage": "no gain on the fit segments"})},
+                 {**ctrl.at_bound, eid: False})
+
+
+def control(model, preps: list[Prepared], base: dict, max_nfev: int = CONTROL_NFEV, start: dict | None = None) -> Refit:
+    """The better (lower fit-segment cost) of the model itself and its refit: never worse than it."""
+    have = tuple(model.meta.get("effects", []))
+    r = refit(preps, model.form, _fe(preps), have, start or start_values(model), max_nfev=max_nfev, base=base)
+    own = _as_refit(model, preps)
+    return r if r.cost <= own.cost else own
+
+
+def nested(ctrl: Refit, preps: list[Prepared], new: tuple, base: dict) -> Refit:
+    """``ctrl`` refitted with the effects ``new`` added, from its base values; never worse than
+    ``ctrl`` on the fit segments (else ``ctrl`` with the effects at zero)."""
+    r = refit(preps, ctrl.model.form, _fe(preps), ctrl.effects + new, {k: ctrl.phys[k] for k in NONLINEAR}, base=base)
+    if r.cost <= ctrl.cost:
+        return r
+    out = ctrl
+    for eid in new:
+        out = _zero_effect(out, eid, preps)
+    return out
+
+
+def effective_size(d: list[np.ndarray]) -> tuple[float, float, float]:
+    """(mean, variance, effective sample size) of a block statistic given per record: the blocks of
+    one record are autocorrelated, the records independent. n_eff = N / (1 + 2 sum rho_k), rho_k
+    pooled over the records about the grand mean (so a record-to-record spread reads as
+    correlation), summed while positive (Geyer's initial positive sequence) and floored at the
+    number of records."""
+    n = sum(x.size for x in d)
+    mean = float(np.mean(np.concatenate(d)))
+    dev = [x - mean for x in d]
+    g0 = sum(float(x @ x) for x in dev) / n
+    if g0 <= 0:
+        return mean, 0.0, float(len(d))
+    s = 0.0
+    for k in range(1, max(x.size for x in d)):
+        rho = sum(float(x[k:] @ x[:-k]) for x in dev if x.size > k) / n / g0
+        if rho <= 0:
+            break
+        s += rho
+    return mean, g0, float(np.clip(n / (1.0 + 2.0 * s), len(d), n))
+
+
+def block_p(ctrl: dict, cand: dict) -> float:
+    """One-sided p-value that the candidate lowers the held-out error: a t-test of the per-block
+    share explained, 1 - SSE_candidate / SSE_control, with the effective sample size of :func:`effective_size`
+    (1 when fewer than ``MIN_RECORDS`` records or either free run is unstable)."""
+    if not (ctrl["stable"] and cand["stable"]) or len(ctrl["records"]) < MIN_RECORDS:
         return 1.0
-    t = d.mean() / (d.std(ddof=1) / np.sqrt(d.size) + 1e-300)
-    return float(scipy.stats.t.sf(t, d.size - 1))
+    d = [1.0 - b / np.maximum(a, 1e-300) for a, b in zip(ctrl["records"], cand["records"])]
+    mean, var, n_eff = effective_size(d)
+    if mean <= 0:
+        return 1.0
+    if var == 0:
+        return 0.0
+    return float(scipy.stats.t.sf(mean / np.sqrt(var / n_eff), max(n_eff - 1.0, 1.0)))
+
+
+def holm(p_values: list[float], alpha: float) -> list[bool]:
+    """Holm's step-down rejections at family-wise level ``alpha``."""
+    order = np.argsort(p_values)
+    reject = [False] * len(p_values)
+    for rank, i in enumerate(order):
+        if p_values[i] > alpha / (len(p_values) - rank):
+            break
+        reject[i] = True
+    return reject
+
+
+def _share(h_ctrl: dict, h: dict) -> float | None:
+    if not (h_ctrl["stable"] and h["stable"]):
+        return None
+    return 1.0 - float(np.sum(h["blocks"]) / max(np.sum(h_ctrl["blocks"]), 1e-300))
+
+
+def _total(h: dict):
+    return None if h["nrmse"] is None else h["nrmse"]["total"]
 
 
 def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> dict:
     """Rank ``candidates`` (default: every library effect the model lacks). Returns the CONTRACT
-    document: ``nrmse_before`` (the model as it is), ``nrmse_control`` and ``candidates`` best first."""
+    document: ``nrmse_before`` (the model as it is), ``nrmse_control`` and ``candidates`` best first;
+    NRMSEs are None (with a ``note``) where a free run is unstable."""
     t0 = time.perf_counter()
     model = baseline.model
     have = tuple(model.meta.get("effects", []))
     candidates = [get_effect(e).id for e in (candidates or EFFECTS) if e not in have]
+    base = drive_base(model, baseline.profile)
     before = heldout(model, preps)
-    fe = _fe(preps)
-    ctrl = refit(preps, model.form, fe, have, start_values(model), max_nfev=CONTROL_NFEV)
-    start = {k: ctrl.phys[k] for k in NONLINEAR}
+    ctrl = control(model, preps, base)
     fits = []
     for j, eid in enumerate(candidates):
         if progress:
             progress(j, len(candidates), f"refit with {eid}")
-        fits.append(refit(preps, model.form, fe, have + (eid,), start))
+        fits.append(nested(ctrl, preps, (eid,), base))
     # No candidate may be credited for finding better base values: refit the control from the
-    # best candidate's base values and keep the better control.
+    # best candidate's base values and keep the better control (the candidates stay >= it).
     best = min(fits, key=lambda r: r.cost, default=None)
-    if best is not None and best.cost < ctrl.cost:
-        again = refit(preps, model.form, fe, have, {k: best.phys[k] for k in NONLINEAR}, max_nfev=CONTROL_NFEV)
-        ctrl = again if again.cost < ctrl.cost else ctrl
+    if best is not None and best.cost < ctrl.cost and best.model is not ctrl.model:
+        again = control(model, preps, base, start={k: best.phys[k] for k in NONLINEAR})
+        if again.cost < ctrl.cost:
+            ctrl = again
+            fits = [r if r.cost <= ctrl.cost else _zero_effect(ctrl, eid, preps) for eid, r in zip(candidates, fits)]
     h_ctrl = heldout(ctrl.model, preps)
-    rows = []
+    rows, p_values = [], []
     for eid, r in zip(candidates, fits):
         h = heldout(r.model, preps)
         identifiable, how = r.identifiable[eid]
-        explained = 1.0 - float(np.sum(h["blocks"]) / max(np.sum(h_ctrl["blocks"]), 1e-300))
-        p_value = _block_p(h_ctrl["blocks"], h["blocks"])
         eff = EFFECTS[eid]
-        row = {"effect": eid, "nrmse_after": h["total"], "explained_fraction": explained,
-               "significant": bool(identifiable and explained >= MIN_EXPLAINED
-                                   and p_value < ALPHA / len(candidates)),
-               "p_value": p_value, "identifiable": identifiable,
+        bound = r.at_bound.get(eid, False)
+        p_values.append(block_p(h_ctrl, h))
+        row = {"effect": eid, "nrmse_after": _total(h), "explained_fraction": _share(h_ctrl, h),
+               "significant": False, "p_value": p_values[-1], "identifiable": identifiable, "at_bound": bound,
                "params": eff.report(r.values[eid], context(r, preps, baseline.profile)),
-               "nrmse_after_dq": {"d": h["d"], "q": h["q"]}, "identifiability": how}
+               "nrmse_after_dq": None if h["nrmse"] is None else {"d": h["nrmse"]["d"], "q": h["nrmse"]["q"]},
+               "identifiability": how}
         if not identifiable:
             why = ("the one-step regression pins it to no better than +-{:.0%} of a typical size".format(
                 how["relative_se"]) if how["stage"] == "one-step" else
+                "it does not lower the error on the fit segments" if how["stage"].startswith("no gain") else
                 "a typical one would be absorbed into the base parameters")
             row["note"] = f"not identifiable from these records: {why}; revealed by {eff.reveals}"
+        elif bound:
+            row["note"] = "at bound: the fit wants it beyond its physical range, so it is not this effect"
+        if not h["stable"]:
+            row["note"] = h["note"]
         rows.append(row)
-    rows.sort(key=lambda r: (r["significant"], r["explained_fraction"]), reverse=True)
-    return {"nrmse_before": before["total"], "nrmse_control": h_ctrl["total"],
-            "nrmse_before_dq": {"d": before["d"], "q": before["q"]}, "candidates": rows,
-            "control_params": ctrl.phys, "records": [p.source for p in preps],
-            "warnings": operating_warnings(baseline, preps), "seconds": time.perf_counter() - t0}
+    reject = holm(p_values, ALPHA)
+    for row, rej in zip(rows, reject):
+        row["significant"] = bool(rej and row["identifiable"] and not row["at_bound"]
+                                  and (row["explained_fraction"] or 0.0) >= MIN_EXPLAINED)
+    rows.sort(key=lambda r: (r["significant"], r["explained_fraction"] if r["explained_fraction"] is not None
+                             else -np.inf), reverse=True)
+    doc = {"nrmse_before": _total(before), "nrmse_control": _total(h_ctrl),
+           "nrmse_before_dq": None if before["nrmse"] is None else {"d": before["nrmse"]["d"], "q": before["nrmse"]["q"]},
+           "candidates": rows, "control_params": ctrl.phys, "control_is_model": ctrl.model is model,
+           "records": [p.source for p in preps], "warnings": operating_warnings(baseline, preps),
+           "seconds": time.perf_counter() - t0}
+    if not before["stable"]:
+        doc["note_before"] = before["note"]
+    if len(preps) < MIN_RECORDS:
+        doc["warnings"].append(f"{len(preps)} record(s): significance needs at least {MIN_RECORDS} "
+                               f"(the test is over records); nothing is called significant")
+    return doc
 
 
 def add_effects(baseline, preps: list[Prepared], effect_ids) -> tuple[object, dict]:
     """Refit ``baseline.model`` with ``effect_ids`` added; returns (refit, figures). Figures:
-    ``nrmse_before`` (the model as it is), ``nrmse_control`` (refit without the new effects) and
-    ``nrmse_after``, all free-run on the held-out segments."""
+    ``nrmse_before`` (the model as it is), ``nrmse_control`` (the control: the model refitted without
+    the new effects, or the model itself if better) and ``nrmse_after``, all the held-out figure."""
     model = baseline.model
     have = tuple(model.meta.get("effects", []))
     new = tuple(get_effect(e).id for e in effect_ids)
     dup = [e for e in new if e in have]
     if dup:
         raise InputError(f"the model already has effect(s) {', '.join(dup)}")
-    fe = _fe(preps)
-    ctrl = refit(preps, model.form, fe, have, start_values(model))
-    r = refit(preps, model.form, fe, have + new, {k: ctrl.phys[k] for k in NONLINEAR})
+    base = drive_base(model, baseline.profile)
+    ctrl = control(model, preps, base)
+    r = nested(ctrl, preps, new, base)
     ctx = context(r, preps, baseline.profile)
-    figures = {"nrmse_before": heldout(model, preps)["total"], "nrmse_control": heldout(ctrl.model, preps)["total"],
-               "nrmse_after": heldout(r.model, preps)["total"],
+    h_before, h_ctrl, h_after = heldout(model, preps), heldout(ctrl.model, preps), heldout(r.model, preps)
+    figures = {"nrmse_before": _total(h_before), "nrmse_control": _total(h_ctrl), "nrmse_after": _total(h_after),
                "params": {e: get_effect(e).report(r.values[e], ctx) for e in have + new},
-               "base": r.phys, "warnings": operating_warnings(baseline, preps)}
+               "at_bound": [e for e in new if r.at_bound.get(e)], "base": r.phys,
+               "warnings": operating_warnings(baseline, preps)}
+    for e in figures["at_bound"]:
+        figures["warnings"].append(f"{e}: at its physical bound; the data want it beyond physics, so it is not this effect")
+    for h in (h_before, h_ctrl, h_after):
+        if not h["stable"]:
+            figures["warnings"].append(h["note"])
     r.model.meta["effect_params"] = figures["params"]
     return r, figures

@@ -43,7 +43,7 @@ import scipy.optimize
 from scipy.signal import butter, sosfiltfilt
 
 from agent.effects import get as get_effect
-from agent.frames import CLARKE
+from agent.frames import CLARKE, dq_to_abc
 from agent.errors import InputError
 from agent.identify import operating_point, record_signals
 from agent.sanity import not_running
@@ -173,7 +173,7 @@ class OneStep:
     se: dict  #: voltage effect id -> their standard errors
 
 
-def one_step(preps: list[Prepared], effect_ids=()) -> OneStep:
+def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None) -> OneStep:
     """L_d, L_q, R_s,d and the parameters of the voltage effects that act within a record, from the
     one-step regression of the ``speed`` form pooled over the fit segments and compensated for the
     channels' white noise.
@@ -238,7 +238,8 @@ def one_step(preps: list[Prepared], effect_ids=()) -> OneStep:
     values, se, j = {}, {}, 0
     for e_idx, e in enumerate(effs):
         if within[e_idx] >= WITHIN_MIN * total[e_idx]:
-            values[e.id] = np.maximum(combined[j:j + len(e.params)], [p.lower for p in e.params])
+            lo, hi = (bounds or effect_bounds([e.id], None))[e.id]
+            values[e.id] = np.clip(combined[j:j + len(e.params)], lo, hi)
             se[e.id] = se_all[j:j + len(e.params)]
         j += len(e.params)
     return OneStep(float(ls[0]), float(ls[1]), float(rs_d), values, se)
@@ -266,21 +267,39 @@ def noise_signals(s: Signals) -> tuple[Signals, Signals]:
     return noisy, Signals.from_abc(zero, zero, s.theta_e, s.omega_e, s.ts, s.pole_pairs)
 
 
-def bounded_lstsq(g: np.ndarray, h: np.ndarray, lower: np.ndarray) -> np.ndarray:
-    """argmin ||y - S a||^2 subject to a >= ``lower`` from the normal equations (G = S S^T, h = S y):
-    an active set, a parameter held at its bound while its unconstrained value falls below it."""
+def bounded_lstsq(g: np.ndarray, h: np.ndarray, lower: np.ndarray, upper: np.ndarray | None = None) -> np.ndarray:
+    """argmin ||y - S a||^2 subject to ``lower`` <= a <= ``upper`` from the normal equations
+    (G = S S^T, h = S y): an active set, a parameter held at the bound it crossed."""
+    upper = np.full(h.size, np.inf) if upper is None else upper
     held = np.zeros(h.size, dtype=bool)
-    while True:
-        a = np.where(held, lower, 0.0)
+    at = np.zeros(h.size)
+    for _ in range(2 * h.size + 1):
+        a = np.where(held, at, 0.0)
         free = ~held
-        rhs = h[free] - g[np.ix_(free, held)] @ lower[held]
+        rhs = h[free] - g[np.ix_(free, held)] @ at[held]
         gf = g[np.ix_(free, free)]
-        scale = np.sqrt(np.diag(gf)) + 1e-30
+        scale = np.sqrt(np.abs(np.diag(gf))) + 1e-30
         a[free] = np.linalg.lstsq(gf / np.outer(scale, scale), rhs / scale, rcond=1e-12)[0] / scale
-        below = free & (a < lower)
-        if not below.any():
+        low, high = free & (a < lower), free & (a > upper)
+        if not (low.any() or high.any()):
             return a
-        held |= below
+        at = np.where(low, lower, np.where(high, upper, at))
+        held |= low | high
+    return np.clip(a, lower, upper)
+
+
+def effect_bounds(effect_ids, base: dict | None) -> dict:
+    """effect id -> (lower, upper) arrays of its parameters for the drive's base values
+    (:meth:`agent.effects.base.Param.bounds`)."""
+    return {e: tuple(np.array(b) for b in zip(*(p.bounds(base or {}) for p in get_effect(e).params)))
+            for e in effect_ids}
+
+
+def at_bound(values: np.ndarray, bounds: tuple[np.ndarray, np.ndarray]) -> bool:
+    """Whether any parameter sits on its physical bound (then the data wanted it beyond physics)."""
+    lo, hi = bounds
+    tol = 1e-6 * np.maximum(np.abs(values), 1e-12)
+    return bool(np.any(np.isfinite(lo) & (values <= lo + tol)) or np.any(np.isfinite(hi) & (values >= hi - tol)))
 
 
 @dataclass
@@ -293,10 +312,11 @@ class Refit:
     values: dict  #: effect id -> parameter values (physical units)
     cost: float
     identifiable: dict  #: effect id -> (bool, {how it was judged})
+    at_bound: dict = field(default_factory=dict)  #: effect id -> whether a parameter sits on its physical bound
 
 
 def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: dict | None = None,
-          max_nfev: int = 40) -> Refit:
+          max_nfev: int = 40, base: dict | None = None) -> Refit:
     """Refit of (R_s,d, R_s,q, L_d, L_q, L_qx, psi_m) and the effects' parameters on the fit segments:
     L_d, L_q, R_s,d and the within-record voltage effects by :func:`one_step`; R_s,q, L_qx, one
     psi_m per record (its magnet temperature; the model keeps their mean) and the other effects by
@@ -310,10 +330,12 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
     limit (to 10 times its value on the rig simulator). Such a model no longer responds like the
     motor, and the agent's residual, which carries the transmission's signature as the model's
     error in the PLL frame, loses part of it (slight gear wear: 12 of 20 records flagged instead
-    of 18). The time constants L_x / R_s,x stay within ``TAU_MIN_S``..``TAU_MAX_S``."""
+    of 18). The time constants L_x / R_s,x stay within ``TAU_MIN_S``..``TAU_MAX_S``; the effects' parameters
+    within their physical bounds for the drive's ``base`` values (:func:`effect_bounds`)."""
     ts = preps[0].sig.ts
     w_op = 2 * np.pi * fe_hz
-    step = one_step(preps, effect_ids)
+    bounds = effect_bounds(effect_ids, base)
+    step = one_step(preps, effect_ids, bounds)
     ld, lq = step.ld, step.lq
     rs_d = float(np.clip(step.rs_d, ld / TAU_MAX_S, ld / TAU_MIN_S))
     every = [get_effect(e) for e in effect_ids]
@@ -355,7 +377,8 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
             yield i[:, ::DECIMATE] - r[0], s_lin
 
     n_lin = n_rec + sum(len(e.params) for e in solved)  # psi_m of each record, then the solved effects'
-    lower = np.array([-np.inf] * n_rec + [p.lower for e in solved for p in e.params])
+    lower = np.concatenate([np.full(n_rec, -np.inf)] + [bounds[e.id][0] for e in solved])
+    upper = np.concatenate([np.full(n_rec, np.inf)] + [bounds[e.id][1] for e in solved])
 
     def solve(z):
         g, h, parts = np.zeros((n_lin, n_lin)), np.zeros(n_lin), []
@@ -367,7 +390,7 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
                 parts.append((y, s))
         if not (np.all(np.isfinite(g)) and np.all(np.isfinite(h))):
             return None, parts  # a trial step made the free run diverge
-        return bounded_lstsq(g, h, lower), parts
+        return bounded_lstsq(g, h, lower, upper), parts
 
     n_res = sum(2 * len(range(0, d[0].size, DECIMATE)) for d in data)
 
@@ -381,7 +404,9 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
     start = {**{"Rs_q": 1.0, "Lq_x": 0.01}, **(start or {})}
     hi = np.log(np.array([lq / TAU_MIN_S, 10 * lq]) / _SCALE)
     lo = np.log(np.array([lq / TAU_MAX_S, 0.1 * lq]) / _SCALE)
-    z0 = np.clip(np.log(np.array([start[k] for k in NONLINEAR]) / _SCALE), lo + 1e-6, hi - 1e-6)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z0 = np.log(np.array([start[k] for k in NONLINEAR], dtype=float) / _SCALE)
+    z0 = np.clip(np.where(np.isfinite(z0), z0, 0.5 * (lo + hi)), lo + 1e-6, hi - 1e-6)  # nonphysical: mid-range
     sol = scipy.optimize.least_squares(residual, z0, bounds=(lo, hi), method="trf", max_nfev=max_nfev,
                                        diff_step=1e-4, verbose=0, ftol=1e-7, xtol=1e-7)
     alpha, _ = solve(sol.x)
@@ -411,7 +436,8 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
         s_all = np.concatenate([s.reshape(s.shape[0], -1) for _, s in responses(sol.x, solved)], axis=1)
         i_norm = np.sqrt(sum(np.sum(d[2][:, ::DECIMATE] ** 2) for d in data))
         judged.update(_unabsorbed(np.column_stack(base + list(s_all[:n_rec])), s_all, solved, i_norm, n_rec))
-    return Refit(tuple(effect_ids), model, phys, values, float(2 * sol.cost), judged)
+    return Refit(tuple(effect_ids), model, phys, values, fit_cost(model, preps), judged,
+                 {e: at_bound(values[e], bounds[e]) for e in values})
 
 
 def _unabsorbed(base: np.ndarray, s_all: np.ndarray, effs, i_norm: float, first: int) -> dict:
@@ -430,23 +456,79 @@ def _unabsorbed(base: np.ndarray, s_all: np.ndarray, effs, i_norm: float, first:
     return out
 
 
+UNSTABLE_GAIN = 10.0  #: a free run beyond this many times the record's largest current has diverged
+
+
 def heldout(model: DQModel, preps: list[Prepared], block_s: float = BLOCK_S) -> dict:
-    """Free-run error of ``model`` on the held-out segments: pooled NRMSE (agent.model.nrmse) and
-    the per-block sums of squared error for the significance test. Each record's magnet flux is
-    first set on its fit segment (:func:`flux_adapted`)."""
-    meas, pred, blocks = [], [], []
+    """The workbench's one error figure (docs/workbench.md, "One error figure"): the free run of
+    ``model`` over each whole record, its magnet flux set on the record's fit segment
+    (:func:`flux_adapted`), compared with the measurement on the held-out segments.
+
+    Returns ``nrmse`` ({d, q, total}, :func:`agent.model.nrmse`'s normalisation: every axis over
+    the RMS current-vector magnitude), ``fit_pct`` = 100 (1 - NRMSE) per axis, the per-record,
+    per-block sums of squared error (``records``: a list of arrays, for the significance test) and
+    ``stable``. A free run that diverges (beyond ``UNSTABLE_GAIN`` times the record's largest
+    current, or a state matrix with an eigenvalue outside the unit circle at the record's speed)
+    has no NRMSE: ``nrmse`` is None, ``unstable_after_s`` says when it left, and ``one_step`` (the
+    one-step NRMSE on the same segments) is what can still be said of the model."""
+    meas, pred, blocks, unstable, step, theta = [], [], [], [], [], []
     for p in preps:
-        y = flux_adapted(model, p)[:, p.eval_slice]
-        i = p.sig.i_dq[:, p.eval_slice]
-        meas.append(i)
-        pred.append(y)
+        with np.errstate(all="ignore"):
+            y = flux_adapted(model, p)
+        i = p.sig.i_dq
+        limit = UNSTABLE_GAIN * max(float(np.max(np.abs(i))), 1e-6)
+        bad = ~np.all(np.isfinite(y) & (np.abs(y) <= limit), axis=0)
+        radius = model.spectral_radius(float(np.mean(p.sig.omega_e)))
+        if bad.any() or radius >= 1.0:
+            first = int(np.argmax(bad)) if bad.any() else p.sig.n - 1
+            unstable.append((first * p.sig.ts, p.source))
+        ev = p.eval_slice
+        meas.append(i[:, ev])
+        pred.append(y[:, ev])
+        step.append(model.one_step(p.sig)[:, ev])
+        theta.append(p.sig.theta_e[ev])
         nb = max(int(block_s / p.sig.ts), 1)
-        e2 = np.sum((i - y) ** 2, axis=0)
+        e2 = np.sum((i[:, ev] - y[:, ev]) ** 2, axis=0)
         k = e2.size // nb
         blocks.append(e2[: k * nb].reshape(k, nb).sum(axis=1) if k else e2.sum(keepdims=True))
-    out = nrmse(np.hstack(meas), np.hstack(pred))
+    meas, theta = np.hstack(meas), np.concatenate(theta)
+    one = _with_phases(meas, np.hstack(step), theta)
+    out = {"stable": not unstable, "one_step": one, "records": blocks}
+    if unstable:
+        t, src = min(unstable)
+        out.update(nrmse=None, fit_pct=None, blocks=None, unstable_after_s=t,
+                   note=f"free run unstable after {t:.3g} s ({src}); one-step NRMSE {100 * one['total']:.3g} %")
+        return out
+    out["nrmse"] = _with_phases(meas, np.hstack(pred), theta)
+    out["fit_pct"] = fit_pct(out["nrmse"])
     out["blocks"] = np.concatenate(blocks)
     return out
+
+
+def _with_phases(meas: np.ndarray, pred: np.ndarray, theta: np.ndarray) -> dict:
+    """:func:`agent.model.nrmse` plus the phases a, b, c: each one's RMS error over the RMS phase
+    current (for balanced currents the same scale as ``total``)."""
+    out = nrmse(meas, pred)
+    ref = np.sqrt(np.mean(dq_to_abc(meas, theta) ** 2))
+    err = dq_to_abc(meas - pred, theta)
+    out.update(zip("abc", (np.sqrt(np.mean(err ** 2, axis=1)) / ref).tolist()))
+    return out
+
+
+def fit_pct(n: dict) -> dict:
+    """fit % = 100 (1 - NRMSE), per axis, of an :func:`agent.model.nrmse` dict (None stays None)."""
+    return None if n is None else {k: 100.0 * (1.0 - v) for k, v in n.items()}
+
+
+def fit_cost(model: DQModel, preps: list[Prepared]) -> float:
+    """Sum of squared free-run errors of ``model`` on the fit segments (its magnet flux set per
+    record): the objective every refit minimises, to compare nested refits with their parent."""
+    total = 0.0
+    for p in preps:
+        with np.errstate(all="ignore"):
+            e = p.sig.i_dq[:, p.fit_slice] - flux_adapted(model, p)[:, p.fit_slice]
+        total += float(np.sum(e ** 2))
+    return total if np.isfinite(total) else np.inf
 
 
 def flux_adapted(model: DQModel, p: Prepared) -> np.ndarray:

@@ -23,31 +23,41 @@ def _save(fig, out: Path, name: str) -> str:
 
 def _plots(data: dict, ranking: dict | None, out: Path) -> list[tuple[str, str]]:
     figs = []
-    sig, y = data["traces"][0]
-    n = min(sig.n, int(0.05 / sig.ts))
-    t = np.arange(n) * sig.ts * 1e3
+    sig = data["traces"][0][0]
+    start = data.get("split", 0)  # the held-out segment, where the figures are measured
+    n = min(sig.n - start, int(0.05 / sig.ts))
+    cut = slice(start, start + n)
+    t = (start + np.arange(n)) * sig.ts * 1e3
     fig, ax = plt.subplots(3, 1, figsize=(10, 7), sharex=True)
     for k, name in enumerate(("i_d", "i_q")):
-        ax[k].plot(t, sig.i_dq[k, :n], lw=0.8, label="measured")
-        ax[k].plot(t, y[k, :n], lw=0.8, label="model (free run)")
+        ax[k].plot(t, sig.i_dq[k, cut], lw=1.2, color="black", label="measured")
         ax[k].set_ylabel(f"{name} (A)")
-    ax[2].plot(t, sig.i_abc[0, :n], lw=0.8, label="measured")
-    ax[2].plot(t, dq_to_abc(y[:, :n], sig.theta_e[:n])[0], lw=0.8, ls="--", label="model (free run)")
+    ax[2].plot(t, sig.i_abc[0, cut], lw=1.2, color="black", label="measured")
+    for j, trace in enumerate(data["traces"]):
+        y, name = trace[1], (trace[2] if len(trace) > 2 else "model")
+        for k in (0, 1):
+            ax[k].plot(t, y[k, cut], lw=0.8, ls=("-", "--", ":", "-.")[j % 4], label=f"{name} (free run)")
+        ax[2].plot(t, dq_to_abc(y[:, cut], sig.theta_e[cut])[0], lw=0.8, ls=("-", "--", ":", "-.")[j % 4],
+                   label=f"{name} (free run)")
     ax[2].set_ylabel("i_a (A)")
     ax[2].set_xlabel("time (ms)")
-    ax[0].legend(loc="upper right")
-    figs.append(("Measured against model (first record, 50 ms)", _save(fig, out, "traces.png")))
+    ax[0].legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=8)
+    figs.append(("Measured against every model compared (first record, 50 ms of its held-out part)",
+                 _save(fig, out, "traces.png")))
 
-    fig, ax = plt.subplots(figsize=(10, 4.5))
+    fig, ax = plt.subplots(figsize=(12, 4.5))
     f, a = data["freqs"], data["amp"]
     ax.semilogy(f, a, lw=0.7, label="residual, phase a")
     if data["th3"] is not None:
         ax.semilogy(f, data["th2"], lw=0.7, color="orange", label="TH2 (caution)")
         ax.semilogy(f, data["th3"], lw=0.7, color="red", label="TH3 (warning)")
-    for k, pk in enumerate(data["peaks"]):
-        ax.annotate(f"{pk['freq_hz']:.1f} Hz: {pk['label']}", (pk["freq_hz"], pk["amplitude_a"]),
-                    xytext=(10, 12 + 14 * (k % 3)), textcoords="offset points", fontsize=7,
-                    arrowprops={"arrowstyle": "-", "lw": 0.5})
+    for k, pk in enumerate(data["peaks"]):  # numbered markers; the labels go in the legend's list below
+        ax.annotate(str(k + 1), (pk["freq_hz"], pk["amplitude_a"]), xytext=(0, 6), textcoords="offset points",
+                    fontsize=8, ha="center", color="darkred")
+    if data["peaks"]:
+        ax.text(1.01, 1.0, "\n".join(f"{k + 1}: {pk['freq_hz']:.1f} Hz, {pk['label']}"
+                                     for k, pk in enumerate(data["peaks"])),
+                transform=ax.transAxes, fontsize=7, va="top", wrap=True)
     ax.set_xlabel("frequency (Hz)")
     ax.set_ylabel("amplitude (A)")
     ax.legend(loc="upper right", fontsize=8)
@@ -90,12 +100,21 @@ def _plots(data: dict, ranking: dict | None, out: Path) -> list[tuple[str, str]]
         rows = ranking["candidates"][::-1]
         fig, ax = plt.subplots(figsize=(10, 0.45 * len(rows) + 1.2))
         colors = ["tab:green" if r["significant"] else "tab:grey" if r["identifiable"] else "tab:orange" for r in rows]
-        ax.barh([r["effect"] for r in rows], [100 * r["explained_fraction"] for r in rows], color=colors)
+        ax.barh([r["effect"] for r in rows], [100 * (r["explained_fraction"] or 0.0) for r in rows], color=colors)
         ax.set_xlabel("share of the held-out residual explained (%) - green: significant, "
                       "orange: not identifiable from these records")
         ax.axvline(0, color="black", lw=0.5)
         figs.append(("Effect ranking", _save(fig, out, "ranking.png")))
     return figs
+
+
+def _fmt(v) -> str:
+    return "unstable" if v is None else f"{100 * v:.3f} %"
+
+
+def _pct(v):
+    """A fraction as a percentage; None (an unstable free run) as "unstable"."""
+    return "unstable" if v is None else 100 * v
 
 
 def _table(rows: list[list], head: list[str]) -> str:
@@ -110,25 +129,28 @@ def write_report(out_dir, title: str, doc: dict, data: dict, ranking: dict | Non
     out.mkdir(parents=True, exist_ok=True)
     figs = _plots(data, ranking, out)
     m = doc["modes"]
-    fit = _table([[mode, *(100 * m[mode]["nrmse"][k] for k in ("d", "q", "total", "a", "b", "c")),
-                   *(m[mode]["fit_pct"][k] for k in "dqabc")] for mode in ("free_run", "one_step")],
-                 ["mode", "NRMSE d %", "q %", "total %", "a %", "b %", "c %", "fit d %", "fit q %", "fit a %",
-                  "fit b %", "fit c %"])
+    keys = ("d", "q", "total", "a", "b", "c")
+    fit = _table([[mode, *((_pct(m[mode]["nrmse"][k]) for k in keys) if m[mode]["nrmse"] else ["unstable"] * 6),
+                   *((m[mode]["fit_pct"][k] for k in keys) if m[mode]["fit_pct"] else ["-"] * 6)]
+                  for mode in ("free_run", "one_step")],
+                 ["mode (held-out)", "NRMSE d %", "q %", "total %", "a %", "b %", "c %", "fit d %", "fit q %",
+                  "fit total %", "fit a %", "fit b %", "fit c %"])
+    fit += f"<p class='warn'>{html.escape(doc['note'])}</p>" if doc.get("note") else ""
     models = list(doc["table"][0]["nrmse"]) if doc["table"] else []
-    t5 = _table([[r["fe_hz"], r["load_pct"], r["records"], *(100 * r["nrmse"][k] for k in models)] for r in doc["table"]],
-                ["fe (Hz)", "load (%)", "records", *(f"{k}: NRMSE %" for k in models)])
+    t5 = _table([[r["fe_hz"], r["load_pct"], r["records"], *(_pct(r["nrmse"][k]) for k in models)]
+                 for r in doc["table"]], ["fe (Hz)", "load (%)", "records", *(f"{k}: NRMSE %" for k in models)])
     where = "".join(f"<li>{html.escape(w.get('summary') or w['label'] + ' at %.1f Hz' % w['freq_hz'])}"
                     + (f" <i>(look at: {html.escape(', '.join(w['effects']))})</i>" if w.get("effects") else "")
                     + "</li>" for w in doc["where"])
     rank = ""
     if ranking:
         rank = "<h2>Effect ranking (held-out, against a refit without effects)</h2>" + _table(
-            [[r["effect"], 100 * r["explained_fraction"], 100 * r["nrmse_after"], r["significant"], r["identifiable"],
+            [[r["effect"], _pct(r["explained_fraction"]), _pct(r["nrmse_after"]), r["significant"], r["identifiable"],
               ", ".join(f"{k}={v:.4g}" for k, v in r["params"].items()), r.get("note", "")]
              for r in ranking["candidates"]],
             ["effect", "explained %", "NRMSE after %", "significant", "identifiable", "parameters", "note"])
-        rank = (f"<p>NRMSE of the model as it is: {100 * ranking['nrmse_before']:.3f} %; refit without effects "
-                f"(control): {100 * ranking['nrmse_control']:.3f} %</p>") + rank
+        rank = (f"<p>Held-out NRMSE of the model as it is: {_fmt(ranking['nrmse_before'])}; control (the model "
+                f"refitted without new effects, or itself if better): {_fmt(ranking['nrmse_control'])}</p>") + rank
     warn = "".join(f"<li class='warn'>{html.escape(w)}</li>" for w in doc.get("warnings", []))
     imgs = "".join(f"<h2>{html.escape(cap)}</h2><img src='{name}' alt='{html.escape(cap)}'>" for cap, name in figs)
     page = f"""<!doctype html><html><head><meta charset="utf-8"><title>{html.escape(title)}</title><style>

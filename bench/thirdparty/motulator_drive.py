@@ -15,8 +15,7 @@ Hidden effects (``effects={id: value}``), and how each enters:
 ================  =========================================================================  ==========
 effect            injection                                                                  value unit
 ================  =========================================================================  ==========
-voltage_delay     the reference voltage as the controller computes it, one sample before it   samples
-                  is applied (motulator's own computation delay); only 1 sample exists
+voltage_delay     the voltage channel recorded whole samples behind the current channel       samples
 current_offset    offset on the sampled currents (a, -a/2, -a/2), seen by the controller      A
 current_gain_     gain error of the phase-b current sensor, seen by the controller            -
 mismatch
@@ -71,7 +70,8 @@ class Run:
     noise_v: float = 0.5  #: voltage-channel white noise, V rms
 
     def key(self) -> str:
-        doc = json.dumps({**self.__dict__, "effects": sorted(self.effects.items()), "v": 1}, sort_keys=True)
+        doc = json.dumps({**self.__dict__, "effects": sorted(self.effects.items()),
+                          "v": 2 if "voltage_delay" in self.effects else 1}, sort_keys=True)
         return hashlib.sha1(doc.encode()).hexdigest()[:16]
 
 
@@ -193,11 +193,12 @@ def simulate(run: Run) -> dict:
     if u_dt:
         i_true = a[:, 1:4] - offset  # the sign of the phase current (noise flips it only near zero)
         applied = applied - u_dt * (np.sign(i_true) - np.sign(i_true).mean(axis=1, keepdims=True))
-    if run.voltage == "reference":
-        v = command if "voltage_delay" in eff else np.vstack((command[:1], command[:-1]))
-        v = v if not u_dt else v  # the command does not know the dead time
-    else:
-        v = applied
+    # the command of interval k is computed at k - 1; the reference channel records it for
+    # interval k (the command does not know the dead time)
+    v = np.vstack((command[:1], command[:-1])) if run.voltage == "reference" else applied
+    lag = int(round(float(eff.get("voltage_delay", 0.0))))
+    if lag:  # the voltage channel recorded ``lag`` samples behind the current channel
+        v = np.vstack((np.repeat(v[:1], lag, axis=0), v[:-lag]))
     keep = a[:, 0] >= WARMUP_S - 1e-12
     a, v = a[keep], v[keep]
     v = v + run.noise_v * rng.standard_normal(v.shape)
