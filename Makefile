@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 PYTEST_ARGS ?=
 
-.PHONY: setup setup-test demo test test-full bench bench-alarms docs clean gateway
+.PHONY: setup setup-test demo test test-full bench bench-alarms bench-workbench docs clean gateway
 
 setup: $(VENV)/.stamp-run
 
@@ -50,6 +50,11 @@ bench: setup-test
 # delays (about an hour on two cores; figures in docs/benchmarks.md)
 bench-alarms: setup-test
 	$(BIN)/python -m bench.bench_alarms
+
+# the workbench on the project's simulator and on motulator (a third-party one): hidden effects,
+# two at once, 25 null record sets each (about 30 min the first time; motulator records are cached)
+bench-workbench: setup-test
+	$(BIN)/python -m bench.bench_workbench
 
 docs: setup
 	$(BIN)/python -m firmware_if.plc_registers --write docs/registers.md

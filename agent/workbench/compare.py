@@ -97,8 +97,9 @@ def where(baseline, preps: list[Prepared], preds: list[np.ndarray]) -> tuple[lis
     # 1. residual spectrum of phase a, windows as the thresholds' when the records allow
     n_min = min(p.sig.n for p in preps) * preps[0].sig.ts
     window = th.window_s if n_min >= th.window_s else n_min
-    spec = [residual_spectra(model, p.sig, window, th.freqs_hz[-1]) for p in preps]
-    freqs, amp = spec[0][0], np.vstack([a for _, a in spec]).mean(axis=0)
+    with np.errstate(all="ignore"):  # an unstable model's windows diverge: their lines are left out
+        spec = [residual_spectra(model, p.sig, window, th.freqs_hz[-1]) for p in preps]
+        freqs, amp = spec[0][0], np.nan_to_num(np.vstack([a for _, a in spec]).mean(axis=0), nan=0.0, posinf=0.0)
     same_grid = freqs.size == th.freqs_hz.size
     data.update(freqs=freqs, amp=amp, th2=th.th2 if same_grid else None, th3=th.th3 if same_grid else None)
     df = freqs[1] - freqs[0]
@@ -173,7 +174,8 @@ def compare(baseline, preps: list[Prepared], one_step: bool = False, others: dic
     with np.errstate(all="ignore"):
         free = [flux_adapted(model, p) for p in preps]
     shown = free if figs["stable"] else [model.one_step(p.sig) for p in preps]
-    found, data = where(baseline, preps, shown)
+    with np.errstate(all="ignore"):
+        found, data = where(baseline, preps, [np.nan_to_num(y, nan=0.0, posinf=0.0, neginf=0.0) for y in shown])
     doc = {"nrmse": figs[mode]["nrmse"], "fit_pct": figs[mode]["fit_pct"], "mode": mode,
            "modes": {k: figs[k] for k in ("free_run", "one_step")}, "stable": figs["stable"], "where": found,
            "table": table({"model": baseline, **(others or {})}, preps), "coverage": coverage(baseline, preps),

@@ -65,12 +65,15 @@ def _fe(preps):
     return float(np.mean([p.op["fe_hz"] for p in preps]))
 
 
-def drive_base(model, profile) -> dict:
+def drive_base(baseline) -> dict:
     """The drive's base values that effect parameters are bounded by
-    (:meth:`agent.effects.base.Param.bounds`): rated current and phase voltage (peak), and the
-    model's R_s,q, L_q and psi_m where physical."""
-    m = profile.motor
-    phys = model.physical()
+    (:meth:`agent.effects.base.Param.bounds`): rated current and phase voltage (peak), and R_s,
+    L_q and psi_m from the baseline's physical estimate, else from its model, where physical."""
+    m = baseline.profile.motor
+    model_phys = baseline.model.physical()
+    est = (baseline.physical or {}).get("values") or {}
+    phys = {"Rs_q": est.get("Rs") or model_phys["Rs_q"], "Lq": est.get("Lq") or model_phys["Lq"],
+            "psi_m": est.get("psi_m") or model_phys["psi_m"]}
     base = {k: phys.get(src) for k, src in (("Rs_q", "Rs_q"), ("Lq", "Lq"), ("psi_m", "psi_m"))}
     base = {k: float(v) for k, v in base.items() if v is not None and np.isfinite(v) and v > 0}
     psi = base.get("psi_m", 0.0)
@@ -81,6 +84,21 @@ def drive_base(model, profile) -> dict:
     if m.rated_voltage_v:
         base["v_rated"] = m.rated_voltage_v * np.sqrt(2.0 / 3.0)
     return base
+
+
+PRIOR_FLOOR = {"Ld": 0.05, "Lq": 0.05, "Rs": 0.2, "psi_m": 0.02}  #: relative sd at least: load, temperature move them
+
+
+def physical_prior(baseline) -> dict:
+    """{"Ld"|"Lq"|"Rs"|"psi_m": (value, relative sd)} from the baseline's physical estimate (identify, with
+    the nameplate where the profile has one), for the refits' base values; identified values only."""
+    est = baseline.physical or {}
+    out = {}
+    for key, floor in PRIOR_FLOOR.items():
+        v, rel = (est.get("values") or {}).get(key), (est.get("rel_sd") or {}).get(key)
+        if v is not None and rel is not None and np.isfinite(v) and v > 0 and np.isfinite(rel):
+            out[key] = (float(v), max(float(rel), floor))
+    return out
 
 
 def _as_refit(model, preps: list[Prepared]) -> Refit:
@@ -94,8 +112,9 @@ def _as_refit(model, preps: list[Prepared]) -> Refit:
                  {e: False for e in have})
 
 
-def _zero_effect(ctrl: Refit, eid: str, preps: list[Prepared]) -> Refit:
-    """``ctrl`` with effect ``eid`` added at zero: the same model, the floor of any candidate."""
+def _zero_effect(ctrl: Refit, eid: str, bound: bool = False) -> Refit:
+    """``ctrl`` with effect ``eid`` added at zero: the same model, the floor of any candidate
+    (``bound``: the refit it replaces held the effect at a physical bound)."""
     m = ctrl.model
     extra_d, extra_q = get_effect(eid).terms()
     n = len(get_effect(eid).params)
@@ -104,26 +123,29 @@ def _zero_effect(ctrl: Refit, eid: str, preps: list[Prepared]) -> Refit:
     model.meta["effects"] = list(ctrl.effects) + [eid]
     return Refit(ctrl.effects + (eid,), model, dict(ctrl.phys), {**ctrl.values, eid: np.zeros(n)}, ctrl.cost,
                  {**ctrl.identifiable, eid: (False, {"stage": "no gain on the fit segments"})},
-                 {**ctrl.at_bound, eid: False})
+                 {**ctrl.at_bound, eid: bound})
 
 
-def control(model, preps: list[Prepared], base: dict, max_nfev: int = CONTROL_NFEV, start: dict | None = None) -> Refit:
+def control(model, preps: list[Prepared], base: dict, max_nfev: int = CONTROL_NFEV, start: dict | None = None,
+            prior: dict | None = None) -> Refit:
     """The better (lower fit-segment cost) of the model itself and its refit: never worse than it."""
     have = tuple(model.meta.get("effects", []))
-    r = refit(preps, model.form, _fe(preps), have, start or start_values(model), max_nfev=max_nfev, base=base)
+    r = refit(preps, model.form, _fe(preps), have, start or start_values(model), max_nfev=max_nfev, base=base,
+              prior=prior)
     own = _as_refit(model, preps)
     return r if r.cost <= own.cost else own
 
 
-def nested(ctrl: Refit, preps: list[Prepared], new: tuple, base: dict) -> Refit:
+def nested(ctrl: Refit, preps: list[Prepared], new: tuple, base: dict, prior: dict | None = None) -> Refit:
     """``ctrl`` refitted with the effects ``new`` added, from its base values; never worse than
     ``ctrl`` on the fit segments (else ``ctrl`` with the effects at zero)."""
-    r = refit(preps, ctrl.model.form, _fe(preps), ctrl.effects + new, {k: ctrl.phys[k] for k in NONLINEAR}, base=base)
+    r = refit(preps, ctrl.model.form, _fe(preps), ctrl.effects + new, {k: ctrl.phys[k] for k in NONLINEAR}, base=base,
+              prior=prior)
     if r.cost <= ctrl.cost:
         return r
     out = ctrl
     for eid in new:
-        out = _zero_effect(out, eid, preps)
+        out = _zero_effect(out, eid, r.at_bound.get(eid, False))
     return out
 
 
@@ -192,22 +214,23 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
     model = baseline.model
     have = tuple(model.meta.get("effects", []))
     candidates = [get_effect(e).id for e in (candidates or EFFECTS) if e not in have]
-    base = drive_base(model, baseline.profile)
+    base, prior = drive_base(baseline), physical_prior(baseline)
     before = heldout(model, preps)
-    ctrl = control(model, preps, base)
+    ctrl = control(model, preps, base, prior=prior)
     fits = []
     for j, eid in enumerate(candidates):
         if progress:
             progress(j, len(candidates), f"refit with {eid}")
-        fits.append(nested(ctrl, preps, (eid,), base))
+        fits.append(nested(ctrl, preps, (eid,), base, prior))
     # No candidate may be credited for finding better base values: refit the control from the
     # best candidate's base values and keep the better control (the candidates stay >= it).
     best = min(fits, key=lambda r: r.cost, default=None)
     if best is not None and best.cost < ctrl.cost and best.model is not ctrl.model:
-        again = control(model, preps, base, start={k: best.phys[k] for k in NONLINEAR})
+        again = control(model, preps, base, start={k: best.phys[k] for k in NONLINEAR}, prior=prior)
         if again.cost < ctrl.cost:
             ctrl = again
-            fits = [r if r.cost <= ctrl.cost else _zero_effect(ctrl, eid, preps) for eid, r in zip(candidates, fits)]
+            fits = [r if r.cost <= ctrl.cost else _zero_effect(ctrl, eid, r.at_bound.get(eid, False))
+                    for eid, r in zip(candidates, fits)]
     h_ctrl = heldout(ctrl.model, preps)
     rows, p_values = [], []
     for eid, r in zip(candidates, fits):
@@ -227,8 +250,9 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
                 "it does not lower the error on the fit segments" if how["stage"].startswith("no gain") else
                 "a typical one would be absorbed into the base parameters")
             row["note"] = f"not identifiable from these records: {why}; revealed by {eff.reveals}"
-        elif bound:
-            row["note"] = "at bound: the fit wants it beyond its physical range, so it is not this effect"
+        if bound:
+            row["note"] = "; ".join(filter(None, ["at bound: the fit wants it beyond its physical range, so it is "
+                                                  "not this effect", row.get("note")]))
         if not h["stable"]:
             row["note"] = h["note"]
         rows.append(row)
@@ -261,9 +285,9 @@ def add_effects(baseline, preps: list[Prepared], effect_ids) -> tuple[object, di
     dup = [e for e in new if e in have]
     if dup:
         raise InputError(f"the model already has effect(s) {', '.join(dup)}")
-    base = drive_base(model, baseline.profile)
-    ctrl = control(model, preps, base)
-    r = nested(ctrl, preps, new, base)
+    base, prior = drive_base(baseline), physical_prior(baseline)
+    ctrl = control(model, preps, base, prior=prior)
+    r = nested(ctrl, preps, new, base, prior)
     ctx = context(r, preps, baseline.profile)
     h_before, h_ctrl, h_after = heldout(model, preps), heldout(ctrl.model, preps), heldout(r.model, preps)
     figures = {"nrmse_before": _total(h_before), "nrmse_control": _total(h_ctrl), "nrmse_after": _total(h_after),

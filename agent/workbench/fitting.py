@@ -62,9 +62,10 @@ WITHIN_MIN = 0.01  #: share of an effect column's energy that must vary within r
 PRECISION = 0.1  #: a one-step effect is identifiable when its standard error is at most this share of a typical size
 SHARE_FLOOR = 0.02  #: a free-run effect is identifiable when the base parameters leave this share of its response
 VISIBLE_FLOOR = 5e-4  #: and that unabsorbed part is at least this NRMSE
+NOISE_LEVEL_REL = 0.05  #: relative uncertainty of the channels' noise variance read off the zero sequence
 DECIMATE = 4  #: the fit's error is read at every DECIMATE-th sample (the free run is simulated at all)
-_SCALE = np.array([1.0, 1e-2])  # R_s,q ohm, L_qx H
-NONLINEAR = ("Rs_q", "Lq_x")
+_SCALE = np.array([1.0, 1e-2, 1.0])  # R_s,q ohm, L_qx H, R_s,d ohm
+NONLINEAR = ("Rs_q", "Lq_x")  #: the free run's nonlinear base parameters (and R_s,d when the one-step leaves it open)
 
 
 @dataclass
@@ -171,6 +172,7 @@ class OneStep:
     rs_d: float  #: ohm, the d axis's resistance
     values: dict  #: voltage effect id -> parameter values (their units)
     se: dict  #: voltage effect id -> their standard errors
+    rel_se: dict = field(default_factory=dict)  #: "Ld", "Lq": relative standard errors; "Rs_d": absolute (ohm)
 
 
 def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None) -> OneStep:
@@ -186,52 +188,67 @@ def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None) -
     p enters as (T_s/L_x) p; each axis gives an estimate, combined by inverse variance. Effects
     whose columns barely vary within a record (less than ``WITHIN_MIN`` of their energy: a level
     per record, like saturation) are left to the free run, as are output effects (y = x + o), which
-    enter here only as o(k+1) - o(k) so that they do not bias the rest."""
+    enter here as o(k+1) - A(k) o(k), A(k) the state matrix of a first pass (which takes A = I), so
+    that they do not bias the rest."""
     effs = [e for e in map(get_effect, effect_ids) if e.kind == "voltage"]
     outs = [e for e in map(get_effect, effect_ids) if e.kind == "output"]
     terms_v = [e.terms() for e in effs]
     n_rec, n_out = len(preps), sum(len(e.params) for e in outs)
     segs = [p.sig.slice(0, p.split) for p in preps]
     noise = [noise_signals(s) for s in segs]
-    est, var, ls = [], [], []
-    within, total = np.zeros(len(effs)), np.zeros(len(effs))
-    for axis, base in enumerate(BASE_TERMS["speed"]):
-        terms = base + tuple(t for d_q in terms_v for t in d_q[axis])
-        n = len(terms)
-        m = n + n_out + n_rec
-        g, h, yy, cnt = np.zeros((m, m)), np.zeros(m), 0.0, 0
-        for j, (s, (noisy, quiet)) in enumerate(zip(segs, noise)):
-            x = np.zeros((s.n - 1, m))
-            x[:, :n] = regressors(terms, s)[:-1]
-            if outs:  # y = x + o: o(k+1) - A o(k), A ~ I to 1 %
-                o = np.concatenate([e.cols(s)[:, axis] for e in outs])
-                x[:, n:n + n_out] = np.diff(o, axis=1).T
-            x[:, n + n_out + j] = 1.0
-            y = s.i_dq[axis, 1:]
-            xn = (regressors(terms, noisy) - regressors(terms, quiet))[:-1]  # columns are affine in v, i
-            g += x.T @ x
-            g[:n, :n] -= xn.T @ xn
-            h += x.T @ y
-            yy += float(y @ y)
-            cnt += y.size
-            k = len(base)
-            for e_idx, e in enumerate(effs):
-                c = x[:, k:k + len(e.params)]
-                within[e_idx] += float(np.sum((c - c.mean(axis=0)) ** 2))
-                total[e_idx] += float(np.sum(c ** 2))
-                k += len(e.params)
-        scale = np.sqrt(np.abs(np.diag(g))) + 1e-30
-        gi = np.linalg.pinv(g / np.outer(scale, scale), rcond=1e-12) / np.outer(scale, scale)
-        theta = gi @ h
-        s2 = max(yy - 2 * theta @ h + theta @ g @ theta, 0.0) / max(cnt - m, 1)
-        ts = preps[0].sig.ts
-        b = max(theta[2], ts / L_MAX_H) if np.isfinite(theta[2]) else ts / L_MAX_H  # column 2: v_d / v_q, T_s / L
-        ls.append(ts / b)
-        if axis == 0:
-            rs_d = (1 - theta[0]) / b  # column 0: i_d, 1 - R_s T_s / L_d
-        cols = slice(len(base), n)
-        est.append(theta[cols] / b)
-        var.append(np.where(np.diag(g)[cols] > 0, s2 * np.diag(gi)[cols] / b**2, np.inf))  # a zero column: no estimate
+    coef = [(1.0, 0.0), (1.0, 0.0)]  # the state matrix's rows (own, cross x omega) behind the output columns
+    for _ in range(2 if outs else 1):
+        new_coef = []
+        est, var, ls, rel = [], [], [], {}
+        within, total = np.zeros(len(effs)), np.zeros(len(effs))
+        for axis, base in enumerate(BASE_TERMS["speed"]):
+            terms = base + tuple(t for d_q in terms_v for t in d_q[axis])
+            n = len(terms)
+            m = n + n_out + n_rec
+            g, h, yy, cnt, gn = np.zeros((m, m)), np.zeros(m), 0.0, 0, np.zeros((m, m))
+            for j, (s, (noisy, quiet)) in enumerate(zip(segs, noise)):
+                x = np.zeros((s.n - 1, m))
+                x[:, :n] = regressors(terms, s)[:-1]
+                if outs:  # y = x + o: o(k+1) - A(k) o(k), A(k) from the previous pass (first: I)
+                    o = np.concatenate([e.cols(s)[:, axis] for e in outs])
+                    o_other = np.concatenate([e.cols(s)[:, 1 - axis] for e in outs])
+                    a_own, a_cross = coef[axis]
+                    x[:, n:n + n_out] = (o[:, 1:] - a_own * o[:, :-1] - a_cross * s.omega_e[:-1] * o_other[:, :-1]).T
+                x[:, n + n_out + j] = 1.0
+                y = s.i_dq[axis, 1:]
+                xn = (regressors(terms, noisy) - regressors(terms, quiet))[:-1]  # columns are affine in v, i
+                g += x.T @ x
+                gn[:n, :n] += xn.T @ xn
+                g[:n, :n] -= xn.T @ xn
+                h += x.T @ y
+                yy += float(y @ y)
+                cnt += y.size
+                k = len(base)
+                for e_idx, e in enumerate(effs):
+                    c = x[:, k:k + len(e.params)]
+                    within[e_idx] += float(np.sum((c - c.mean(axis=0)) ** 2))
+                    total[e_idx] += float(np.sum(c ** 2))
+                    k += len(e.params)
+            scale = np.sqrt(np.abs(np.diag(g))) + 1e-30
+            gi = np.linalg.pinv(g / np.outer(scale, scale), rcond=1e-12) / np.outer(scale, scale)
+            theta = gi @ h
+            s2 = max(yy - 2 * theta @ h + theta @ g @ theta, 0.0) / max(cnt - m, 1)
+            # the compensation's own uncertainty: the noise levels known to NOISE_LEVEL_REL; where
+            # the regressors barely vary beyond their noise (smooth closed-loop data) it dominates
+            d_theta = gi @ (NOISE_LEVEL_REL * gn @ theta)
+            cov = s2 * np.diag(gi) + d_theta ** 2
+            ts = preps[0].sig.ts
+            b = max(theta[2], ts / L_MAX_H) if np.isfinite(theta[2]) else ts / L_MAX_H  # column 2: v_d / v_q, T_s / L
+            ls.append(ts / b)
+            rel[("Ld", "Lq")[axis]] = float(np.sqrt(max(cov[2], 0.0)) / b)
+            if axis == 0:
+                rs_d = (1 - theta[0]) / b  # column 0: i_d, 1 - R_s T_s / L_d
+                rel["Rs_d"] = float(np.sqrt(max(cov[0], 0.0)) / b)
+            cols = slice(len(base), n)
+            est.append(theta[cols] / b)
+            var.append(np.where(np.diag(g)[cols] > 0, cov[cols] / b**2, np.inf))  # a zero column: no estimate
+            new_coef.append((float(theta[0]), float(theta[1])))  # i_x and w * i_other: the state matrix's row
+        coef = new_coef
     w = [np.where(np.isfinite(v), 1.0 / np.maximum(v, 1e-300), 0.0) for v in var]
     combined = (w[0] * est[0] + w[1] * est[1]) / np.maximum(w[0] + w[1], 1e-300)
     se_all = 1.0 / np.sqrt(np.maximum(w[0] + w[1], 1e-300))
@@ -242,7 +259,7 @@ def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None) -
             values[e.id] = np.clip(combined[j:j + len(e.params)], lo, hi)
             se[e.id] = se_all[j:j + len(e.params)]
         j += len(e.params)
-    return OneStep(float(ls[0]), float(ls[1]), float(rs_d), values, se)
+    return OneStep(float(ls[0]), float(ls[1]), float(rs_d), values, se, rel)
 
 
 def zero_sequence_sigma(x_abc: np.ndarray) -> float:
@@ -315,8 +332,65 @@ class Refit:
     at_bound: dict = field(default_factory=dict)  #: effect id -> whether a parameter sits on its physical bound
 
 
+CONFLICT_SD = 3.0  #: a prior further than this many combined sd from the records' own estimate is not used
+RS_D_PRECISION = 0.3  #: R_s,d from the one-step regression is used when known to this share; else the free run fits it
+
+
+def with_prior(step: OneStep, prior: dict | None) -> tuple[float, float, float | None]:
+    """(L_d, L_q, R_s,d) of the one-step regression combined with ``prior`` ({"Ld"|"Lq"|"Rs":
+    (value, relative sd)}, e.g. the baseline's physical estimate or the nameplate) by inverse
+    variance, L in log space, unless the two conflict (``CONFLICT_SD``: the records differ from
+    the baseline's, a missing effect or another load, and their own estimate stands). R_s,d is None
+    where neither pins it to ``RS_D_PRECISION``: the
+    refit then fits R_s,d by the free run as well where the records' i_d differs (MTPA: the d axis's
+    steady state reads R_s,d i_d), else takes R_s,d = R_s,q (one winding)."""
+    prior = prior or {}
+    out = []
+    for key, value in (("Ld", step.ld), ("Lq", step.lq)):
+        rel = step.rel_se.get(key, np.inf)
+        if key in prior and np.isfinite(value) and value > 0:
+            p, p_rel = prior[key]
+            if abs(np.log(value / p)) <= CONFLICT_SD * np.hypot(rel, p_rel):  # else the records differ: theirs
+                w1, w0 = 1.0 / max(rel, 1e-12) ** 2, 1.0 / max(p_rel, 1e-12) ** 2
+                value = float(np.exp((w1 * np.log(value) + w0 * np.log(p)) / (w1 + w0)))
+        elif key in prior and not (np.isfinite(value) and value > 0):
+            value = prior[key][0]
+        out.append(value)
+    rs, se = step.rs_d, step.rel_se.get("Rs_d", np.inf)
+    if "Rs" in prior:
+        p, p_rel = prior["Rs"]
+        w1, w0 = (1.0 / max(se, 1e-12) ** 2 if np.isfinite(rs) else 0.0), 1.0 / max(p_rel * p, 1e-12) ** 2
+        rs, se = (w1 * np.nan_to_num(rs) + w0 * p) / (w1 + w0), 1.0 / np.sqrt(w1 + w0)
+    precise = np.isfinite(rs) and rs > 0 and se <= RS_D_PRECISION * rs
+    return out[0], out[1], (float(rs) if precise else None)
+
+
+PSI_SPREAD = 0.15  #: a record's psi_m stays within this share of the prior's (magnet temperature, 0.1 %/K)
+
+
+def psi_range(prior: dict | None) -> tuple[float, float]:
+    """Range of each record's psi_m in a refit: positive, and within ``PSI_SPREAD`` (or three prior
+    sd) of the prior's value where there is one. At one load R_s,q and psi_m are collinear, and a
+    free run left alone trades them (R at its bound, psi_m negative)."""
+    if prior and "psi_m" in prior:
+        v, rel = prior["psi_m"]
+        spread = max(PSI_SPREAD, 3 * rel)
+        return v * max(1 - spread, 0.0), v * (1 + spread)
+    return 0.0, np.inf
+
+
+D_SPREAD = 0.1  #: records' mean i_d spread (share of the mean |i_q|) that makes R_s,d readable from the d axis
+
+
+def d_current_varies(preps: list[Prepared]) -> bool:
+    """Whether the records' mean d current differs enough between them (MTPA, field weakening) for
+    the d axis's steady state R_s,d i_d - omega_e L_qx i_q = v_d to separate R_s,d from L_qx."""
+    i = np.array([p.sig.i_dq[:, p.fit_slice].mean(axis=1) for p in preps])
+    return bool(np.ptp(i[:, 0]) >= D_SPREAD * max(float(np.mean(np.abs(i[:, 1]))), 1e-9))
+
+
 def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: dict | None = None,
-          max_nfev: int = 40, base: dict | None = None) -> Refit:
+          max_nfev: int = 40, base: dict | None = None, prior: dict | None = None) -> Refit:
     """Refit of (R_s,d, R_s,q, L_d, L_q, L_qx, psi_m) and the effects' parameters on the fit segments:
     L_d, L_q, R_s,d and the within-record voltage effects by :func:`one_step`; R_s,q, L_qx, one
     psi_m per record (its magnet temperature; the model keeps their mean) and the other effects by
@@ -336,8 +410,13 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
     w_op = 2 * np.pi * fe_hz
     bounds = effect_bounds(effect_ids, base)
     step = one_step(preps, effect_ids, bounds)
-    ld, lq = step.ld, step.lq
-    rs_d = float(np.clip(step.rs_d, ld / TAU_MAX_S, ld / TAU_MIN_S))
+    ld, lq, rs_d = with_prior(step, prior)
+    # R_s,d left open: the free run fits it where the records' i_d differs between them (MTPA, the
+    # d axis's steady state reads R_s,d i_d), else it is the q axis's (one winding)
+    free_d = rs_d is None and d_current_varies(preps)
+    tied = rs_d is None and not free_d
+    rs_d = float(np.clip(rs_d if rs_d is not None else 1.0, ld / TAU_MAX_S, ld / TAU_MIN_S))
+    n_z = 3 if free_d else 2
     every = [get_effect(e) for e in effect_ids]
     solved = [e for e in every if e.id not in step.values]  # the rest are set by one_step
     data = []
@@ -353,8 +432,9 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
     def responses(z, effs):
         """Per record: (measured current less the free run from the voltages, (n_rec + m, 2, N')
         free-run responses to each record's psi_m and to each column of ``effs``)."""
-        rs_q, lq_x = np.exp(z) * _SCALE
-        a0, a1 = DQModel(form, ts, *_thetas(form, ts, w_op, rs_d, rs_q, ld, lq, lq_x, 0.0)).state_matrices()
+        rs_q, lq_x, r_d = (np.exp(z) * _SCALE[:n_z]).tolist() + ([] if free_d else [rs_d])
+        r_d = rs_q if tied else r_d
+        a0, a1 = DQModel(form, ts, *_thetas(form, ts, w_op, r_d, rs_q, ld, lq, lq_x, 0.0)).state_matrices()
         b = np.array([ts / ld, ts / lq])[:, None]
         for rec, (omega, v, i, cols) in enumerate(data):
             rows = [(e.kind, row) for e in effs for row in cols[e.id]]
@@ -377,8 +457,9 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
             yield i[:, ::DECIMATE] - r[0], s_lin
 
     n_lin = n_rec + sum(len(e.params) for e in solved)  # psi_m of each record, then the solved effects'
-    lower = np.concatenate([np.full(n_rec, -np.inf)] + [bounds[e.id][0] for e in solved])
-    upper = np.concatenate([np.full(n_rec, np.inf)] + [bounds[e.id][1] for e in solved])
+    psi_lo, psi_hi = psi_range(prior)
+    lower = np.concatenate([np.full(n_rec, psi_lo)] + [bounds[e.id][0] for e in solved])
+    upper = np.concatenate([np.full(n_rec, psi_hi)] + [bounds[e.id][1] for e in solved])
 
     def solve(z):
         g, h, parts = np.zeros((n_lin, n_lin)), np.zeros(n_lin), []
@@ -402,10 +483,11 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
         return np.nan_to_num(res, nan=1e3, posinf=1e3, neginf=-1e3)
 
     start = {**{"Rs_q": 1.0, "Lq_x": 0.01}, **(start or {})}
-    hi = np.log(np.array([lq / TAU_MIN_S, 10 * lq]) / _SCALE)
-    lo = np.log(np.array([lq / TAU_MAX_S, 0.1 * lq]) / _SCALE)
+    hi = np.log(np.array([lq / TAU_MIN_S, 10 * lq, ld / TAU_MIN_S])[:n_z] / _SCALE[:n_z])
+    lo = np.log(np.array([lq / TAU_MAX_S, 0.1 * lq, ld / TAU_MAX_S])[:n_z] / _SCALE[:n_z])
     with np.errstate(invalid="ignore", divide="ignore"):
-        z0 = np.log(np.array([start[k] for k in NONLINEAR], dtype=float) / _SCALE)
+        z0 = np.log(np.array([start[k] for k in NONLINEAR] + [start["Rs_q"]] * (n_z - 2), dtype=float)
+                    / _SCALE[:n_z])
     z0 = np.clip(np.where(np.isfinite(z0), z0, 0.5 * (lo + hi)), lo + 1e-6, hi - 1e-6)  # nonphysical: mid-range
     sol = scipy.optimize.least_squares(residual, z0, bounds=(lo, hi), method="trf", max_nfev=max_nfev,
                                        diff_step=1e-4, verbose=0, ftol=1e-7, xtol=1e-7)
@@ -417,7 +499,8 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
         values[e.id] = alpha[j:j + len(e.params)]
         j += len(e.params)
     values = {e.id: values[e.id] for e in every}
-    phys = {**dict(zip(NONLINEAR, (np.exp(sol.x) * _SCALE).tolist())), "Rs_d": rs_d, "Ld": ld, "Lq": lq,
+    found = (np.exp(sol.x) * _SCALE[:n_z]).tolist()
+    phys = {**dict(zip(NONLINEAR, found)), "Rs_d": found[2] if free_d else found[0] if tied else rs_d, "Ld": ld, "Lq": lq,
             "psi_m": float(np.mean(alpha[:n_rec]))}
     model = base_model(form, ts, fe_hz, phys, effect_ids, values)
     judged = {}
@@ -432,10 +515,10 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
             return np.concatenate([(y - np.tensordot(alpha[:n_rec], s[:n_rec], 1)).ravel()
                                    for y, s in responses(z, ())])
         y0 = output(sol.x)
-        base = [(output(sol.x + 1e-4 * e) - y0) / 1e-4 for e in np.eye(len(NONLINEAR))]
+        sens = [(output(sol.x + 1e-4 * e) - y0) / 1e-4 for e in np.eye(n_z)]
         s_all = np.concatenate([s.reshape(s.shape[0], -1) for _, s in responses(sol.x, solved)], axis=1)
         i_norm = np.sqrt(sum(np.sum(d[2][:, ::DECIMATE] ** 2) for d in data))
-        judged.update(_unabsorbed(np.column_stack(base + list(s_all[:n_rec])), s_all, solved, i_norm, n_rec))
+        judged.update(_unabsorbed(np.column_stack(sens + list(s_all[:n_rec])), s_all, solved, i_norm, n_rec))
     return Refit(tuple(effect_ids), model, phys, values, fit_cost(model, preps), judged,
                  {e: at_bound(values[e], bounds[e]) for e in values})
 
