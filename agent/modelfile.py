@@ -38,7 +38,8 @@ def baseline_to_json(b: Baseline) -> dict:
         "profile": {"name": name, **{k: {kk: vv for kk, vv in v.items() if vv is not None}
                                      for k, v in prof.items() if v is not None}},
         "operating_point": b.operating_point,
-        "model": {"form": m.form, "ts": m.ts, "fe_hz": m.fe_hz, "theta_d": _arr(m.theta_d),
+        "model": {"form": m.form, "ts": m.ts, "fe_hz": m.fe_hz, "discretisation": m.discretisation,
+                  "theta_d": _arr(m.theta_d),
                   "theta_q": _arr(m.theta_q), "effects": m.meta.get("effects", []),
                   "physical": m.physical(), "meta": {k: v for k, v in m.meta.items() if k != "effects"}},
         "thresholds": {"freqs_hz": _arr(th.freqs_hz), "centre": _arr(th.centre), "spread": _arr(th.spread),
@@ -61,7 +62,8 @@ def baseline_from_json(doc: dict, source: str = "<model>") -> Baseline:
         m, th, cl = doc["model"], doc["thresholds"], doc["cluster"]
         extra_d, extra_q = effect_terms(m.get("effects", []), source)
         model = DQModel(m["form"], float(m["ts"]), np.array(m["theta_d"]), np.array(m["theta_q"]),
-                        extra_d, extra_q, fe_hz=float(m["fe_hz"]), meta={**m.get("meta", {}), "effects": m.get("effects", [])})
+                        extra_d, extra_q, fe_hz=float(m["fe_hz"]), meta={**m.get("meta", {}), "effects": m.get("effects", [])},
+                        discretisation=_discretisation(m.get("discretisation", "euler"), source))
         return Baseline(
             profile=parse_profile(doc["profile"], source=source), model=model,
             thresholds=Thresholds(np.array(th["freqs_hz"]), np.array(th["centre"]), np.array(th["spread"]),
@@ -76,6 +78,12 @@ def baseline_from_json(doc: dict, source: str = "<model>") -> Baseline:
         raise
     except (KeyError, TypeError, ValueError) as err:
         raise InputError(f"corrupt model file ({type(err).__name__}: {err})", source=source) from None
+
+
+def _discretisation(name, source: str) -> str:
+    if name not in ("euler", "zoh2"):
+        raise InputError(f"model.discretisation {name!r} is not 'euler' or 'zoh2'", source=source)
+    return name
 
 
 def effect_terms(effects: list, source: str):

@@ -119,7 +119,8 @@ def _zero_effect(ctrl: Refit, eid: str, bound: bool = False) -> Refit:
     extra_d, extra_q = get_effect(eid).terms()
     n = len(get_effect(eid).params)
     model = type(m)(m.form, m.ts, np.concatenate((m.theta_d, np.zeros(n))), np.concatenate((m.theta_q, np.zeros(n))),
-                    m.extra_d + extra_d, m.extra_q + extra_q, fe_hz=m.fe_hz, meta=dict(m.meta))
+                    m.extra_d + extra_d, m.extra_q + extra_q, fe_hz=m.fe_hz, meta=dict(m.meta),
+                    discretisation=m.discretisation)
     model.meta["effects"] = list(ctrl.effects) + [eid]
     return Refit(ctrl.effects + (eid,), model, dict(ctrl.phys), {**ctrl.values, eid: np.zeros(n)}, ctrl.cost,
                  {**ctrl.identifiable, eid: (False, {"stage": "no gain on the fit segments"})},

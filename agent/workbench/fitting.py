@@ -48,7 +48,7 @@ from agent.errors import InputError
 from agent.identify import operating_point, record_signals
 from agent.sanity import not_running
 from agent.kernels import simulate_ltv
-from agent.model import BASE_TERMS, DQModel, Signals, lumped_params, nrmse, regressors
+from agent.model import BASE_TERMS, DQModel, Signals, lumped_params, nrmse, regressors, zoh2_matrices
 from agent.profile import DriveProfile
 from agent.records import Record
 
@@ -60,7 +60,7 @@ L_MAX_H = 10.0  #: H, the inductance taken when the one-step regression sees no 
 TAU_MIN_S, TAU_MAX_S = 0.5e-3, 0.1  #: s, range of the electrical time constants L_x / R_s,x of a refit
 WITHIN_MIN = 0.01  #: share of an effect column's energy that must vary within records for one_step to fit it
 PRECISION = 0.1  #: a one-step effect is identifiable when its standard error is at most this share of a typical size
-SHARE_FLOOR = 0.02  #: a free-run effect is identifiable when the base parameters leave this share of its response
+SHARE_FLOOR = 0.1  #: a free-run effect is identifiable when the base parameters leave this share of its response
 VISIBLE_FLOOR = 5e-4  #: and that unabsorbed part is at least this NRMSE
 NOISE_LEVEL_REL = 0.05  #: relative uncertainty of the channels' noise variance read off the zero sequence
 DECIMATE = 4  #: the fit's error is read at every DECIMATE-th sample (the free run is simulated at all)
@@ -158,7 +158,7 @@ def base_model(form: str, ts: float, fe_hz: float, phys: dict, effect_ids=(), va
         eff, p = get_effect(eid), np.asarray((values or {})[eid], dtype=float)
         gain_d, gain_q = (1.0, 1.0) if eff.kind == "output" else (ts / ld, ts / lq)
         th_d, th_q = np.concatenate((th_d, p * gain_d)), np.concatenate((th_q, p * gain_q))
-    model = DQModel(form, ts, th_d, th_q, extra_d, extra_q, fe_hz=fe_hz)
+    model = DQModel(form, ts, th_d, th_q, extra_d, extra_q, fe_hz=fe_hz, discretisation="zoh2")
     model.meta["effects"] = list(effect_ids)
     return model
 
@@ -241,8 +241,9 @@ def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None) -
             b = max(theta[2], ts / L_MAX_H) if np.isfinite(theta[2]) else ts / L_MAX_H  # column 2: v_d / v_q, T_s / L
             ls.append(ts / b)
             rel[("Ld", "Lq")[axis]] = float(np.sqrt(max(cov[2], 0.0)) / b)
-            if axis == 0:
-                rs_d = (1 - theta[0]) / b  # column 0: i_d, 1 - R_s T_s / L_d
+            if axis == 0:  # column 0: i_d, 1 - R_s T_s / L_d - (omega_e T_s)^2 / 2 (zoh2: the rotating frame)
+                w0 = float(np.mean(np.concatenate([q.omega_e for q in segs])))
+                rs_d = (1 - theta[0] - 0.5 * (w0 * ts) ** 2) / b
                 rel["Rs_d"] = float(np.sqrt(max(cov[0], 0.0)) / b)
             cols = slice(len(base), n)
             est.append(theta[cols] / b)
@@ -447,7 +448,10 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
                     u[j] = b * row
                 else:
                     x0[j] = -row[:, 0]
-            r = _sim_batch(a0, a1, omega, u, x0)[:, :, ::DECIMATE]
+            # zoh2 (agent.model.DQModel.propagation): (I + A^2)/2 and (I + A)/2 u
+            h0, h1 = zoh2_matrices(a0, a1, float(np.mean(omega)))
+            u = 0.5 * (u + np.einsum("ij,mjk->mik", a0, u) + omega * np.einsum("ij,mjk->mik", a1, u))
+            r = _sim_batch(h0, h1, omega, u, x0)[:, :, ::DECIMATE]
             for j, (kind, row) in enumerate(rows, start=2):
                 if kind == "output":
                     r[j] += row[:, ::DECIMATE]
@@ -622,10 +626,8 @@ def flux_adapted(model: DQModel, p: Prepared) -> np.ndarray:
     omega_e L_q / R_s (~3 at rated speed) amplifies on d; the agent re-identifies it anyway. One
     scalar per record, from data the held-out segment does not include."""
     y = model.simulate(p.sig)
-    a0, a1 = model.state_matrices()
-    u = np.zeros((2, p.sig.n))
-    u[1] = -model.theta_q[2] * p.sig.omega_e  # +1 Wb of psi_m (theta_q[2] = T_s/L_q in both forms)
-    r = simulate_ltv(a0, a1, p.sig.omega_e, u, np.zeros(2))
+    a0, a1, _ = model.propagation(p.sig)
+    r = simulate_ltv(a0, a1, p.sig.omega_e, model.psi_input(p.sig), np.zeros(2))  # +1 Wb of psi_m
     f = p.fit_slice
     den = float(np.sum(r[:, f] ** 2))
     d_psi = float(np.sum(r[:, f] * (p.sig.i_dq[:, f] - y[:, f]))) / den if den > 0 else 0.0
