@@ -419,7 +419,11 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
     rs_d = float(np.clip(rs_d if rs_d is not None else 1.0, ld / TAU_MAX_S, ld / TAU_MIN_S))
     n_z = 3 if free_d else 2
     every = [get_effect(e) for e in effect_ids]
-    solved = [e for e in every if e.id not in step.values]  # the rest are set by one_step
+    # one_step sets the effects it pins down; those it cannot (smooth closed-loop data: little
+    # sample-to-sample excitation) go to the free run with the rest, which judges them itself
+    precise = {e.id for e in every if e.id in step.se and _one_step_rel(step, e) <= PRECISION}
+    step.values = {k: v for k, v in step.values.items() if k in precise}
+    solved = [e for e in every if e.id not in step.values]
     data = []
     for p in preps:
         cut = p.fit_slice
@@ -509,9 +513,8 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
     model = base_model(form, ts, fe_hz, phys, effect_ids, values)
     judged = {}
     for e in every:
-        if e.id in step.se:  # read by the one-step regression: pinned to a fraction of a typical size?
-            rel = float(np.max(step.se[e.id] / np.array([p.typical for p in e.params])))
-            judged[e.id] = (rel <= PRECISION, {"stage": "one-step", "relative_se": rel})
+        if e.id in step.values:  # read by the one-step regression, pinned to a fraction of a typical size
+            judged[e.id] = (True, {"stage": "one-step", "relative_se": _one_step_rel(step, e)})
         else:
             judged[e.id] = (False, {"stage": "free run", "unabsorbed_share": 0.0, "visible_nrmse": 0.0})
     if solved and np.isfinite(sol.cost):  # output sensitivities to the base parameters; effects' responses
@@ -525,6 +528,11 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
         judged.update(_unabsorbed(np.column_stack(sens + list(s_all[:n_rec])), s_all, solved, i_norm, n_rec))
     return Refit(tuple(effect_ids), model, phys, values, fit_cost(model, preps), judged,
                  {e: at_bound(values[e], bounds[e]) for e in values})
+
+
+def _one_step_rel(step: OneStep, effect) -> float:
+    """The one-step regression's standard error of an effect over its typical size (largest parameter)."""
+    return float(np.max(step.se[effect.id] / np.array([p.typical for p in effect.params])))
 
 
 def _unabsorbed(base: np.ndarray, s_all: np.ndarray, effs, i_norm: float, first: int) -> dict:
