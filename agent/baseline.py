@@ -198,7 +198,7 @@ class BaselineBuilder:
         self.stretch_s = 0.0
         self.consecutive = False  #: stretches follow each other in one stream (streaming learning)
 
-    def add_fit(self, sig: Signals, source: str = "") -> FitResult:
+    def add_fit(self, sig: Signals, source: str = "", encoder: bool = False) -> FitResult:
         """Pass 1: identify one healthy record or window (Alg. 2 lines 4-8, Alg. 4 lines 6-10).
         With a model set beforehand (``set_model``), the fit carries its form and extra terms, as
         :func:`agent.decision.assess` does for the cluster point."""
@@ -207,7 +207,7 @@ class BaselineBuilder:
         fit = fit_record(sig, self.profile, self.settings["form"] if m is None else m.form, extra,
                          prefilter_hz=self.settings["prefilter_hz"], plausible=False)
         self.fits.append(fit)
-        self.observations.append(observe(sig))
+        self.observations.append(observe(sig, encoder))
         self.sources.append(source)
         return fit
 
@@ -305,7 +305,7 @@ def identify_baseline(records: list[Record], profile: DriveProfile, *, refine: b
         idle = not_running(sigs[-1], profile)
         if idle is not None:
             raise InputError(f"{idle}: not a healthy record of a running drive", source=rec.source)
-        builder.add_fit(sigs[-1], rec.source)
+        builder.add_fit(sigs[-1], rec.source, encoder=rec.theta_e is not None)
     if refine:
         builder.set_model(refine_output_error(builder.model(), sigs))
     for j, (rec, sig) in enumerate(zip(records, sigs)):

@@ -52,6 +52,7 @@ class Observation:
     gram: list  #: per axis (G, h, M): noise-compensated normal equations of the dynamics, and the
     #: meat X^T diag(e^2) X of their sandwich covariance
     ts: float
+    encoder: bool = True  #: the frame is the encoder's (else a PLL's, whose d axis carries the speed ripple)
 
 
 def zero_sequence_sigma(x_abc: np.ndarray) -> float:
@@ -68,8 +69,10 @@ def _dq_noise_var(sigma: float) -> float:
     return 2.0 / 3.0 * sigma**2
 
 
-def observe(sig: Signals) -> Observation:
-    """Steady-state means and the dynamics' normal equations of one record."""
+def observe(sig: Signals, encoder: bool = True) -> Observation:
+    """Steady-state means and the dynamics' normal equations of one record; ``encoder``: whether
+    its angle is an encoder's (a narrow PLL's frame wobbles with the shaft's speed ripple, which the
+    d axis's sample-to-sample regression reads as inductance: 0.0285 H for 0.015 H on the rig)."""
     i_d, i_q = sig.i_dq
     v_d, v_q = sig.v_dq
     w = sig.omega_e
@@ -105,7 +108,7 @@ def observe(sig: Signals) -> Observation:
         e = y - x @ theta
         xe = x * e[:, None]
         gram.append((g, h, xe.T @ xe))
-    return Observation(means, np.array(se), gram, sig.ts)
+    return Observation(means, np.array(se), gram, sig.ts, encoder)
 
 
 @dataclass
@@ -183,7 +186,10 @@ def _dynamics(obs: list[Observation]) -> list[tuple[float, float]]:
     residual carries the regressors' own noise, which the textbook s^2 G^-1 would leave out."""
     out = []
     for axis in (0, 1):
-        parts = [o.gram[axis] for o in obs]
+        parts = [o.gram[axis] for o in obs if o.encoder or axis == 1]  # L_d: encoder frames only
+        if not parts:
+            out.append((np.nan, np.inf))
+            continue
         p = parts[0][0].shape[0] - 1
         size = p + len(parts)
         g, h, meat = np.zeros((size, size)), np.zeros(size), np.zeros((size, size))
@@ -203,7 +209,7 @@ def _dynamics(obs: list[Observation]) -> list[tuple[float, float]]:
     return out
 
 
-def _collinear_reason(names: list[str], means: np.ndarray) -> str:
+def _collinear_reason(names: list[str], means: np.ndarray, encoder: bool = True) -> str:
     fe_spread = np.ptp(means[:, 4]) / max(abs(means[:, 4]).mean(), 1e-9)
     iq_spread = np.ptp(means[:, 1]) / max(abs(means[:, 1]).mean(), 1e-9)
     one_point = fe_spread < 0.05 and iq_spread < 0.2
@@ -214,6 +220,11 @@ def _collinear_reason(names: list[str], means: np.ndarray) -> str:
                 f"second load (i_q at least 30 % apart) or a speed step separate them, or give "
                 f"nameplate.rs_ohm or nameplate.psi_m_wb")
     if s == {"Ld"}:
+        if not encoder:
+            return ("L_d: with i_d ~ 0 it is absent from the steady state, and its sample-to-sample response is "
+                    "read only in an encoder's frame (a PLL's d axis carries the shaft's speed ripple); records "
+                    "with an encoder angle, or with i_d varying (field weakening, MTPA), reveal it, or give "
+                    "nameplate.ld_h")
         return ("L_d: with i_d ~ 0 it is absent from the steady state, and the voltage barely excites the d "
                 "current; a d-current step, field weakening or PWM ripple in the records reveals it, or give "
                 "nameplate.ld_h")
@@ -265,7 +276,8 @@ def estimate(obs: list[Observation], profile: DriveProfile, priors: dict[str, Pr
         close = [k for k in range(4) if k == j or abs(corr[j, k]) > COLLINEAR]
         names = [NAMES[k] for k in close if weak[k]]
         if names not in [g["parameters"] for g in groups]:
-            groups.append({"parameters": names, "reason": _collinear_reason([NAMES[k] for k in close], means),
+            groups.append({"parameters": names, "reason": _collinear_reason([NAMES[k] for k in close], means,
+                                                                           any(o.encoder for o in obs)),
                            "correlated": {NAMES[k]: float(data_sd[k]) for k in close if not weak[k]},
                            "from_nameplate": all(n in priors for n in names)})
     data_sd = np.where(weak, np.inf, data_sd)

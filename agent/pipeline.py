@@ -121,6 +121,7 @@ class DriveMonitor:
         self._samples = 0  # samples since the stream (re)started
         self._learn_mark = -(1 << 62)  # learning takes non-overlapping spans/windows from here on
         self._next_sample: int | None = None
+        self._encoder = False  #: the last block carried an encoder angle
         self._theta_last = 0.0
         self._bad_until = 0  # stream sample until which spans contain NaN or saturated samples
         self._spectra: dict[tuple[str, int], np.ndarray] = {}  # (model, window end sample) -> spectrum
@@ -137,6 +138,7 @@ class DriveMonitor:
             self.reset_stream()
         self._next_sample = block.first_sample + block.n
         self.last_input = time.monotonic()
+        self._encoder = block.theta_e is not None
         if block.theta_e is not None:
             theta = block.theta_e
             omega = block.omega_e if block.omega_e is not None else np.gradient(np.unwrap(theta)) * self.rate
@@ -388,7 +390,7 @@ class DriveMonitor:
         if len(b.fits) < c.learn_windows:
             if self._samples - self._learn_mark >= self.n_span:  # non-overlapping spans
                 self._learn_mark = self._samples
-                b.add_fit(sig, f"{self.drive}@{self._samples}")
+                b.add_fit(sig, f"{self.drive}@{self._samples}", encoder=self._encoder)
                 if len(b.fits) == c.learn_windows:
                     self._learn_mark = -(1 << 62)
                     self.on_event("learning", {"name": self._learn_name, "phase": "thresholds",

@@ -45,7 +45,7 @@ def _plots(data: dict, ranking: dict | None, out: Path) -> list[tuple[str, str]]
     figs.append(("Measured against every model compared (first record, 50 ms of its held-out part)",
                  _save(fig, out, "traces.png")))
 
-    fig, ax = plt.subplots(figsize=(12, 4.5))
+    fig, ax = plt.subplots(figsize=(10, 4.5))
     f, a = data["freqs"], data["amp"]
     ax.semilogy(f, a, lw=0.7, label="residual, phase a")
     if data["th3"] is not None:
@@ -54,14 +54,12 @@ def _plots(data: dict, ranking: dict | None, out: Path) -> list[tuple[str, str]]
     for k, pk in enumerate(data["peaks"]):  # numbered markers; the labels go in the legend's list below
         ax.annotate(str(k + 1), (pk["freq_hz"], pk["amplitude_a"]), xytext=(0, 6), textcoords="offset points",
                     fontsize=8, ha="center", color="darkred")
-    if data["peaks"]:
-        ax.text(1.01, 1.0, "\n".join(f"{k + 1}: {pk['freq_hz']:.1f} Hz, {pk['label']}"
-                                     for k, pk in enumerate(data["peaks"])),
-                transform=ax.transAxes, fontsize=7, va="top", wrap=True)
     ax.set_xlabel("frequency (Hz)")
     ax.set_ylabel("amplitude (A)")
     ax.legend(loc="upper right", fontsize=8)
-    figs.append(("Residual spectrum with thresholds and labelled peaks", _save(fig, out, "spectrum.png")))
+    peaks = "; ".join(f"{k + 1}: {pk['freq_hz']:.1f} Hz, {pk['label']}" for k, pk in enumerate(data["peaks"]))
+    figs.append(("Residual spectrum with thresholds; numbered peaks" + (f" ({peaks})" if peaks else ""),
+                 _save(fig, out, "spectrum.png")))
 
     fig, ax = plt.subplots(1, 3, figsize=(12, 3.8))
     deg = (np.arange(data["angle_bins"].shape[1]) + 0.5) * 360 / data["angle_bins"].shape[1]
