@@ -166,7 +166,16 @@ def cmd_diagnose(args) -> None:
     base = load_baseline(args.model)
     recs = _load_records(args.data, base.profile,
                          min_samples=int(round(base.thresholds.window_s * base.profile.sampling.rate_hz)))
-    results = [diagnose(base, r).to_json() for r in recs]
+    diagnoses = [diagnose(base, r) for r in recs]
+    results = [d.to_json() for d in diagnoses]
+    report = None
+    if args.report:
+        try:
+            from agent.workbench.report import write_diagnosis_report
+        except ImportError as err:
+            raise InputError(f"--report needs the workbench install (make setup): {err}") from None
+
+        report = str(write_diagnosis_report(args.report, base, diagnoses, str(args.model)))
     lines = []
     for r in results:
         if r["quality"] != "good":
@@ -177,7 +186,9 @@ def cmd_diagnose(args) -> None:
                      f"{r['cluster_state']}, d2 {r['cluster']['distance2']:.1f}/{r['cluster']['limit']:.1f})"
                      + (f"\n    peaks: {peaks}" if peaks else "")
                      + "".join(f"\n    note: {n}" for n in r["notes"]))
-    _emit(args, {"model": str(args.model), "results": results}, "\n".join(lines))
+    lines += [f"report: {report}"] if report else []
+    _emit(args, {"model": str(args.model), "results": results, **({"report": report} if report else {})},
+          "\n".join(lines))
 
 
 def cmd_demo(args) -> None:
@@ -247,6 +258,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("diagnose", parents=[common], help="normal / caution / warning for each record")
     s.add_argument("--model", required=True)
+    s.add_argument("--report", metavar="DIR", help="write an HTML page: decision table, parameter cluster, each "
+                   "record's residual spectrum with TH1-TH3 and the fault sidebands (needs the workbench install)")
     s.add_argument("data", nargs="+")
     s.set_defaults(func=cmd_diagnose)
 

@@ -47,6 +47,7 @@ class Diagnosis:
     evidence: dict = field(default_factory=dict)  #: the alarm evidence of the record (agent.evidence)
     quality: str = "good"  #: "no_model" when the drive is not running (``reason`` says why)
     reason: str | None = None
+    spectrum: tuple | None = field(default=None, repr=False)  #: (freqs Hz, amplitude per window) for plots
 
     def to_json(self) -> dict:
         return {"record": self.record, "state": self.state, "quality": self.quality, "reason": self.reason,
@@ -122,6 +123,7 @@ def assess(baseline: Baseline, sig: Signals, source: str = "") -> Diagnosis:
     freqs, amp = residual_spectra(m, sig, baseline.thresholds.window_s, baseline.thresholds.freqs_hz[-1])
     d = decide(baseline, freqs, amp, point, op, source)
     d.evidence = record_evidence(baseline, freqs, amp, point, op)
+    d.spectrum = (freqs, amp)
     return d
 
 

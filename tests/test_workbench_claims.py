@@ -4,6 +4,7 @@ effects bounded to physics, the significance test over an effective sample size,
 form of ``bench.bench_workbench`` on the project's simulator and on motulator."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,6 +18,7 @@ from agent.simulator import simulate
 from agent.workbench import explain as ex
 from agent.workbench.fitting import fit_cost, heldout, prepare
 from bench.workbench_evidence import GEAR, GEAR_PATH, baseline
+from tests.test_workbench import assert_renders
 
 
 @pytest.fixture(scope="module")
@@ -93,6 +95,24 @@ def test_unstable_free_run_is_reported_not_a_number(base80, capsys, offset_files
     comp = _json(capsys, "model", "compare", "--model", str(path), *data[:2])
     assert comp["nrmse"] is None and comp["stable"] is False and "unstable" in comp["note"]
     assert all(v is None for r in comp["table"] for v in r["nrmse"].values())
+
+
+def test_diagnose_report_has_the_cluster_and_each_spectrum(capsys, offset_files, tmp_path):
+    """`diagnose --report DIR`: the decision table, the cluster plot (Figs. 9, 11) and one spectrum
+    plot per record with TH1-TH3 and the fault sidebands (Figs. 8, 10); rendered by Chromium."""
+    d, data = offset_files
+    healthy = sorted(str(p) for p in d.glob("h_*.npz"))[:2]
+    severe = tmp_path / "severe.npz"
+    save_record(simulate(GEAR, "gear_severe_wear", 80.0, 1.0, seed=830), severe)
+    doc = _json(capsys, "diagnose", "--model", str(d / "m.json"), "--report", str(tmp_path / "dg"),
+                *healthy, str(severe))
+    page = Path(doc["report"])
+    text = page.read_text()
+    assert "cluster.png" in text and all(f"spectrum_{j}.png" in text for j in range(3))
+    assert text.count("<tr>") == 4 and "warning" in text  # header + three records
+    for png in ("cluster.png", "spectrum_0.png", "spectrum_2.png"):
+        assert (page.parent / png).stat().st_size > 10_000
+    assert_renders(page, tmp_path)
 
 
 @settings(max_examples=4, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])

@@ -160,3 +160,79 @@ td,th{{border:1px solid #bbb;padding:2px 8px;text-align:right;font-size:13px}} i
     path = out / "index.html"
     path.write_text(page)
     return path
+
+
+STATE_COLOURS = {"normal": "tab:green", "caution": "tab:orange", "warning": "tab:red"}
+
+
+def _spectrum_plot(base, d, out: Path, name: str) -> str:
+    """One record's residual spectrum (mean over its windows) with TH1..TH3 and its fault lines
+    marked by level, as the paper's Figs. 8 and 10."""
+    th = base.thresholds
+    freqs, amp = d.spectrum
+    a = np.atleast_2d(amp).mean(axis=0)
+    fig, ax = plt.subplots(figsize=(10, 3.6))
+    ax.semilogy(freqs, a, lw=0.7, color="tab:blue", label="residual, phase a")
+    if freqs.size == th.freqs_hz.size:
+        for level, style in ((th.centre, ("grey", "TH1 (healthy mean)")), (th.th2, ("orange", "TH2 (caution)")),
+                             (th.th3, ("red", "TH3 (warning)"))):
+            ax.semilogy(freqs, level, lw=0.7, color=style[0], label=style[1])
+    for pk in d.peaks:
+        colour = STATE_COLOURS.get(pk["level"], "tab:green")
+        ax.axvline(pk["freq_hz"], color=colour, lw=0.6, ls=":", alpha=0.8)
+        ax.plot(pk["freq_hz"], pk["magnitude"], "v", color=colour, ms=5)
+    ax.set_xlim(0, min(freqs[-1], 4 * (d.operating_point.get("fe_hz") or freqs[-1] / 4)))
+    ax.set_xlabel("frequency (Hz)")
+    ax.set_ylabel("amplitude (A)")
+    ax.set_title(f"{Path(d.record).name}: {d.state} (spectrum {d.spectrum_state}); dotted: fault sidebands "
+                 f"(green normal, orange caution, red warning)", fontsize=9)
+    ax.legend(loc="upper right", fontsize=7)
+    return _save(fig, out, name)
+
+
+def _cluster_plot(base, results, out: Path) -> str:
+    """The healthy (Ts/Lq, B_GT) cluster with its region's edge and the records marked by state,
+    as the paper's Figs. 9 and 11."""
+    cl = base.cluster
+    fig, ax = plt.subplots(figsize=(8.5, 5))
+    ax.plot(cl.points[:, 0], cl.points[:, 1], "o", color="grey", ms=4, label="healthy (baseline)")
+    vals, vecs = np.linalg.eigh(cl.cov)
+    t = np.linspace(0, 2 * np.pi, 200)
+    ring = cl.centre[:, None] + vecs @ (np.sqrt(np.maximum(vals, 0) * cl.limit)[:, None] * np.vstack((np.cos(t), np.sin(t))))
+    ax.plot(ring[0], ring[1], color="black", lw=0.8, label=f"{100 * cl.confidence:.0f} % healthy region")
+    for state, colour in STATE_COLOURS.items():
+        pts = [(r.cluster["ts_over_lq"], r.cluster["b_gt"]) for r in results if r.cluster and r.cluster_state == state]
+        if pts:
+            p = np.array(pts)
+            ax.plot(p[:, 0], p[:, 1], "s", color=colour, ms=6, label=f"records: cluster {state}")
+    ax.set_xlabel("T_s / L_q (identified)")
+    ax.set_ylabel("B_GT (N m s/rad)")
+    ax.ticklabel_format(style="sci", axis="both", scilimits=(-3, 3))
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))  # outside: never over a point
+    return _save(fig, out, "cluster.png")
+
+
+def write_diagnosis_report(out_dir, base, results, model_name: str) -> Path:
+    """``diagnose --report DIR``: the decision table, the parameter cluster and each record's
+    residual spectrum with its thresholds and fault sidebands; returns the page's path."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    good = [r for r in results if r.quality == "good"]
+    rows = [[Path(r.record).name, r.state, r.spectrum_state, r.cluster_state,
+             f"{r.cluster.get('distance2', float('nan')):.2f} / {r.cluster.get('limit', float('nan')):.2f}" if r.cluster else "-",
+             ", ".join(f"{p['freq_hz']:.1f} Hz {p['family']} k={p['k']} {p['level']}" for p in r.peaks
+                       if p["level"] != "normal") or "-", r.reason or "; ".join(r.notes)]
+            for r in results]
+    table = _table(rows, ["record", "state", "spectrum", "cluster", "cluster d2 / limit", "lines above TH2",
+                          "note"])
+    imgs = [("Parameter cluster (Ts/Lq against B_GT) with the healthy region", _cluster_plot(base, good, out))]
+    imgs += [(f"Residual spectrum: {Path(r.record).name}", _spectrum_plot(base, r, out, f"spectrum_{j}.png"))
+             for j, r in enumerate(good) if r.spectrum is not None]
+    body = "".join(f"<h2>{html.escape(cap)}</h2><img src='{name}' alt='{html.escape(cap)}'>" for cap, name in imgs)
+    page = f"""<!doctype html><html><head><meta charset="utf-8"><title>Diagnosis with {html.escape(model_name)}</title>
+<style>body{{font-family:sans-serif;max-width:1200px;margin:1em auto;color:#222}} table{{border-collapse:collapse;margin:.5em 0}}
+td,th{{border:1px solid #bbb;padding:2px 8px;font-size:13px}} img{{max-width:100%}} h2{{font-size:1.1em;margin-top:1.4em}}</style>
+</head><body><h1>Diagnosis with {html.escape(model_name)}</h1><h2>Decisions (paper Table 4 rule)</h2>{table}{body}</body></html>"""
+    path = out / "index.html"
+    path.write_text(page)
+    return path
