@@ -163,6 +163,12 @@ def cmd_diagnose(args) -> None:
     from agent.decision import diagnose
     from agent.modelfile import load_baseline
 
+    if args.report:  # before the work: a folder that cannot be written is found at once
+        try:
+            from agent.workbench.report import report_folder, write_diagnosis_report
+        except ImportError as err:
+            raise InputError(f"--report needs the workbench install (make setup): {err}") from None
+        report_folder(args.report)
     base = load_baseline(args.model)
     recs = _load_records(args.data, base.profile,
                          min_samples=int(round(base.thresholds.window_s * base.profile.sampling.rate_hz)))
@@ -170,10 +176,6 @@ def cmd_diagnose(args) -> None:
     results = [d.to_json() for d in diagnoses]
     report = None
     if args.report:
-        try:
-            from agent.workbench.report import write_diagnosis_report
-        except ImportError as err:
-            raise InputError(f"--report needs the workbench install (make setup): {err}") from None
 
         report = str(write_diagnosis_report(args.report, base, diagnoses, str(args.model)))
     lines = []

@@ -291,6 +291,15 @@ def main(argv=None) -> int:
     bad = [s for s in sims if s not in ("rig", "motulator")]
     if bad:
         p.error(f"--sims: unknown simulator {bad[0]!r} (rig, motulator)")
+    if not 0.4 <= a.seconds <= 10:
+        p.error(f"--seconds: {a.seconds:g} is outside 0.4..10 s (the hold-out needs half of each record)")
+    if a.null < 0:
+        p.error(f"--null: {a.null} is negative")
+    from agent.effects import EFFECTS
+
+    unknown = [e for e in a.effects.split(",") if e and e not in EFFECTS]
+    if unknown:
+        p.error(f"--effects: unknown effect {unknown[0]!r} (known: {', '.join(EFFECTS)})")
     seconds, n_null = (0.6, 2) if a.short else (a.seconds, a.null)
     say = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
     res = run(sims, seconds, n_null, [e for e in a.effects.split(",") if e] or None, not a.no_pair, say)

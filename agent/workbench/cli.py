@@ -20,6 +20,11 @@ def _load(args, model_path):
     from agent.modelfile import load_baseline
     from agent.workbench.fitting import prepare
 
+    if getattr(args, "report", None):  # before the work: a folder that cannot be written is found at once
+        from agent.workbench.report import report_folder
+
+        report_folder(args.report)
+
     base = load_baseline(model_path)
     recs = _load_records(args.data, base.profile, min_samples=int(0.2 * base.profile.sampling.rate_hz))
     return base, recs, prepare(recs, base.profile)

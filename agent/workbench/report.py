@@ -14,6 +14,22 @@ import numpy as np  # noqa: E402
 from agent.frames import dq_to_abc  # noqa: E402
 
 
+def report_folder(out_dir) -> Path:
+    """``out_dir`` created (with parents) for a report; a path that cannot be a folder is the user's
+    error (exit 2 naming ``--report``), not a crash."""
+    from agent.errors import InputError
+
+    out = Path(out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / ".write-test"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as err:
+        raise InputError(f"--report {out_dir}: cannot write a report folder there ({err.strerror or err})") from None
+    return out
+
+
 def _save(fig, out: Path, name: str) -> str:
     fig.tight_layout()
     fig.savefig(out / name, dpi=90)
@@ -123,8 +139,7 @@ def _table(rows: list[list], head: list[str]) -> str:
 
 def write_report(out_dir, title: str, doc: dict, data: dict, ranking: dict | None = None) -> Path:
     """Write ``index.html`` and its PNGs into ``out_dir``; returns the page's path."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = report_folder(out_dir)
     figs = _plots(data, ranking, out)
     m = doc["modes"]
     keys = ("d", "q", "total", "a", "b", "c")
@@ -215,8 +230,7 @@ def _cluster_plot(base, results, out: Path) -> str:
 def write_diagnosis_report(out_dir, base, results, model_name: str) -> Path:
     """``diagnose --report DIR``: the decision table, the parameter cluster and each record's
     residual spectrum with its thresholds and fault sidebands; returns the page's path."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = report_folder(out_dir)
     good = [r for r in results if r.quality == "good"]
     rows = [[Path(r.record).name, r.state, r.spectrum_state, r.cluster_state,
              f"{r.cluster.get('distance2', float('nan')):.2f} / {r.cluster.get('limit', float('nan')):.2f}" if r.cluster else "-",
