@@ -25,5 +25,6 @@ EFFECT = Effect(
               "a DC part against the current vector that looks like extra resistance at one load",
     dq_orders=(6, 12), abc_orders=(5, 7, 11, 13),
     reveals="records whose voltage is the drive's command (sampling.voltage_source = \"reference\"): "
-            "a measured terminal voltage already contains the dead time",
+            "a measured terminal voltage already contains the dead time; at two or more loads (the dead-time "
+            "voltage stays while R_s i grows)",
 )

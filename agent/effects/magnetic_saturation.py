@@ -31,7 +31,8 @@ EFFECT = Effect(
     columns=columns, report=report,
     signature="d-axis residual that grows with the cube of the q current: visible across loads, "
               "absorbed into L_q at any single load",
-    reveals="records at several loads (current levels); at one load it is absorbed into L_q; where i_d changes "
+    reveals="records at several loads, at least three spanning 40 % of rated current or more (e.g. 50, 80, "
+            "110 %); at one load it is absorbed into L_q; where i_d changes "
             "with the load (MTPA) also the winding resistance (nameplate.rs_ohm), which R_s i_d otherwise "
             "trades with it",
 )

@@ -23,5 +23,6 @@ EFFECT = Effect(
     params=(Param("dR_dt", "ohm/s", "rate of change of R_s", 0.2, -0.5, 0.5, "Rs_q"),),
     columns=columns, report=report,
     signature="residual growing over time within each record (time-binned residual), mostly on q",
-    reveals="records long enough for the resistance to change (seconds), with load current",
+    reveals="records long enough for R_s to change by 1 % or more within them (a winding warming by 3 K: "
+            "seconds to minutes), at 30 % load or more",
 )

@@ -24,5 +24,5 @@ EFFECT = Effect(
               "input at lag +-1); at constant speed mostly a rotation of the voltage by omega_e d T_s",
     reveals="any record with the current loop's broadband voltage (the one-step regression reads the delay "
             "sample to sample); with a smooth voltage at one constant speed it is only a rotation "
-            "omega_e d T_s, absorbed into the lumped parameters: speed or load steps reveal it then",
+            "omega_e d T_s, absorbed into the lumped parameters: speed or load steps of 10 % or more reveal it then",
 )
