@@ -41,7 +41,9 @@ def baseline_to_json(b: Baseline) -> dict:
         "model": {"form": m.form, "ts": m.ts, "fe_hz": m.fe_hz, "discretisation": m.discretisation,
                   "theta_d": _arr(m.theta_d),
                   "theta_q": _arr(m.theta_q), "effects": m.meta.get("effects", []),
-                  "physical": m.physical(), "meta": {k: v for k, v in m.meta.items() if k != "effects"}},
+                  # the coefficients read as R, L, psi at the operating point: not physical values where
+                  # the records cannot separate them (those, with intervals, are the top-level "physical")
+                  "lumped_equivalent": m.physical(), "meta": {k: v for k, v in m.meta.items() if k != "effects"}},
         "thresholds": {"freqs_hz": _arr(th.freqs_hz), "centre": _arr(th.centre), "spread": _arr(th.spread),
                        "window_s": th.window_s, "robust": th.robust, "search_bins": th.search_bins},
         "cluster": {"points": _arr(cl.points), "centre": _arr(cl.centre), "cov": _arr(cl.cov),
