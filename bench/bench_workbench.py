@@ -37,11 +37,19 @@ BASE_LOAD = 80.0
 ALPHA_FW = 0.01  #: the explain's family-wise level (agent.workbench.explain.ALPHA)
 
 
-def _reference(path: Path):
-    """The profile at ``path`` with the drive's voltage command recorded (dead time shows)."""
-    doc = tomllib.loads(path.read_text())
-    doc["sampling"]["voltage_source"] = "reference"
-    return parse_profile(doc, source=f"{doc['name']}_reference")
+def _variants(path: Path, rs_ohm: float) -> dict:
+    """The profile at ``path`` keyed by (reference, nameplate): with the drive's voltage command
+    recorded (dead time shows) and with a nameplate R_s (a DC measurement at 20 C, 5 %)."""
+    out = {}
+    for reference in (False, True):
+        for nameplate in (False, True):
+            doc = tomllib.loads(path.read_text())
+            if reference:
+                doc["sampling"]["voltage_source"] = "reference"
+            if nameplate:
+                doc["nameplate"] = {"rs_ohm": rs_ohm, "rs_temp_c": 20.0}
+            out[reference, nameplate] = parse_profile(doc, source=f"{doc['name']}_{int(reference)}{int(nameplate)}")
+    return out
 
 
 @dataclass(frozen=True)
@@ -55,6 +63,8 @@ class Scenario:
     key: str
     truth: Callable[[list, float], float]
     encoder: bool = True  #: motulator's records carry its encoder angle (the rig's never: PLL, as the agent runs)
+    nameplate: bool = False  #: the profile carries the nameplate R_s
+    effect: str = ""  #: the hidden effect when the scenario's key is not its id
 
 
 def _const(recs, value):
@@ -72,12 +82,12 @@ class Rig:
     path = ROOT / "config/profiles/rig_gear.toml"
 
     def __init__(self):
-        self.profiles = {False: load_profile(self.path), True: _reference(self.path)}
+        self.profiles = _variants(self.path, 2.0)  # agent.simulator.rig.RigParams.R_s at 20 C
 
     def records(self, effects: dict, loads, seconds: float, seed: int, reference=False, encoder=True):
         from agent.simulator import simulate
 
-        prof = self.profiles[reference]
+        prof = self.profiles[reference, False]
         return [simulate(prof, "healthy", load, seconds, seed=seed + j, effects=effects or None)
                 for j, load in enumerate(loads)]
 
@@ -102,14 +112,16 @@ class Motulator:
     def __init__(self):
         from bench.thirdparty.motulator_drive import PROFILE
 
+        from bench.thirdparty.motulator_drive import R_S
+
         self.path = PROFILE
-        self.profiles = {False: load_profile(PROFILE), True: _reference(PROFILE)}
+        self.profiles = _variants(PROFILE, R_S)
 
     def records(self, effects: dict, loads, seconds: float, seed: int, reference=False, encoder=True):
         from agent.records import load_record
         from bench.thirdparty.motulator_drive import Run, cached
 
-        prof = self.profiles[reference]
+        prof = self.profiles[reference, False]
         out = []
         for j, load in enumerate(loads):
             run = Run(load_pct=load, seconds=seconds, seed=seed + j, effects=dict(effects or {}),
@@ -164,6 +176,10 @@ def scenarios(sim) -> dict[str, Scenario]:
         "voltage_delay": Scenario(1.0, (60.0, 100.0), False, "delay_samples", _delay_truth),
         "flux_harmonics": Scenario(0.005, (80.0,), False, "psi_6_Wb", _const),
         "magnetic_saturation": Scenario(sat, (50.0, 80.0, 110.0), False, "lq_drop_at_rated", sim.saturation_truth),
+        # the same with the nameplate R_s an engineer measures: under MTPA it separates R_s i_d from saturation
+        "magnetic_saturation+nameplate": Scenario(sat, (50.0, 80.0, 110.0), False, "lq_drop_at_rated",
+                                                       sim.saturation_truth, nameplate=True,
+                                                       effect="magnetic_saturation"),
         "inverter_deadtime": Scenario(10.0, (50.0, 80.0, 110.0), True, "U_dt_V", _const),
         # the effect is the ripple a narrow-band speed signal misses: records without an encoder
         "speed_ripple": Scenario(1.0 if sim.name == "rig" else 1.5, (80.0,), False, "omega_e_ripple_rad_s",
@@ -179,27 +195,30 @@ class Bench:
         self.sim, self.seconds, self.say = sim, seconds, say
         self._bases = {}
 
-    def baseline(self, reference: bool):
+    def baseline(self, reference: bool, nameplate: bool = False):
         from agent.baseline import identify_baseline
 
-        if reference not in self._bases:
+        if (reference, nameplate) not in self._bases:
             recs = self.sim.records({}, (BASE_LOAD,) * 4, 1.0, 700, reference)
-            self._bases[reference] = identify_baseline(recs, self.sim.profiles[reference], window_s=0.5)
-        return self._bases[reference]
+            self._bases[reference, nameplate] = identify_baseline(recs, self.sim.profiles[reference, nameplate],
+                                                                  window_s=0.5)
+        return self._bases[reference, nameplate]
 
-    def explain(self, recs, reference=False) -> dict:
+    def explain(self, recs, reference=False, nameplate=False) -> dict:
         from agent.workbench.explain import explain
         from agent.workbench.fitting import prepare
 
-        return explain(self.baseline(reference), prepare(recs, self.sim.profiles[reference]))
+        return explain(self.baseline(reference, nameplate), prepare(recs, self.sim.profiles[reference, nameplate]))
 
-    def scenario(self, effect: str, sc: Scenario) -> dict:
+    def scenario(self, name: str, sc: Scenario) -> dict:
         t0 = time.perf_counter()
+        effect = sc.effect or name
         loads = sc.loads * (4 // len(sc.loads)) + sc.loads[: 4 % len(sc.loads)]
         recs = self.sim.records({effect: sc.value}, loads, self.seconds, 100, sc.reference, sc.encoder)
-        doc = self.explain(recs, sc.reference)
+        doc = self.explain(recs, sc.reference, sc.nameplate)
         row = judge(doc, effect, sc.key, sc.truth(recs, sc.value))
-        self.say(f"{self.sim.name} {effect}: rank {row['rank']}, significant {row['significant']}, "
+        row["scenario"] = name
+        self.say(f"{self.sim.name} {name}: rank {row['rank']}, significant {row['significant']}, "
                  f"gain {row['gain']:.2f}, error {row['error']:+.0%} ({time.perf_counter() - t0:.0f} s)")
         return row
 
@@ -233,7 +252,8 @@ def judge(doc: dict, effect: str, key: str, true: float) -> dict:
             "nrmse_before": doc["nrmse_before"], "nrmse_control": doc["nrmse_control"],
             "nrmse_after": row["nrmse_after"], "nrmse_best_wrong": wrong,
             "gain": wrong / max(row["nrmse_after"], 1e-300), "key": key, "fitted": fitted, "true": true,
-            "error": fitted / true - 1.0, "bound": row.get("at_bound", False)}
+            "error": fitted / true - 1.0, "bound": row.get("at_bound", False),
+            "identifiable": bool(row["identifiable"]), "note": row.get("note", "")}
 
 
 def run(sims=("rig", "motulator"), seconds: float = 1.0, n_null: int = 25, effects=None, pair=True,
@@ -260,7 +280,7 @@ def table(result: dict) -> str:
              "gain | parameter: fitted (true), error |", "|---|---|---|---|---|---|---|"]
     for name, res in result["sims"].items():
         for r in res["rows"]:
-            lines.append(f"| {name} | {r['effect']} | {r['top']} (rank {r['rank']}) | "
+            lines.append(f"| {name} | {r.get('scenario', r['effect'])} | {r['top']} (rank {r['rank']}) | "
                          f"{'yes' if r['significant'] else 'no'} | {_fmt(r['nrmse_control'])} -> "
                          f"{_fmt(r['nrmse_after'])} ({_fmt(r['nrmse_best_wrong'])}) | {r['gain']:.1f}x | "
                          f"{r['key']} {r['fitted']:.4g} ({r['true']:.4g}), {100 * r['error']:+.0f} % |")
@@ -283,7 +303,8 @@ def main(argv=None) -> int:
     p.add_argument("--sims", default="rig,motulator", help="comma-separated: rig, motulator")
     p.add_argument("--seconds", type=float, default=1.0, help="record length, s (default 1.0)")
     p.add_argument("--null", type=int, default=25, help="null record sets per simulator (default 25)")
-    p.add_argument("--effects", default="", help="comma-separated effect ids (default: all)")
+    p.add_argument("--effects", default="", help="comma-separated scenarios: effect ids, or "
+                   "magnetic_saturation+nameplate (default: all)")
     p.add_argument("--no-pair", action="store_true", help="skip the two-effect scenario")
     p.add_argument("--short", action="store_true", help="`make test`'s form: 0.6 s records, 2 null sets")
     a = p.parse_args(argv)
@@ -297,7 +318,7 @@ def main(argv=None) -> int:
         p.error(f"--null: {a.null} is negative")
     from agent.effects import EFFECTS
 
-    unknown = [e for e in a.effects.split(",") if e and e not in EFFECTS]
+    unknown = [e for e in a.effects.split(",") if e and e.split("+")[0] not in EFFECTS]
     if unknown:
         p.error(f"--effects: unknown effect {unknown[0]!r} (known: {', '.join(EFFECTS)})")
     seconds, n_null = (0.6, 2) if a.short else (a.seconds, a.null)

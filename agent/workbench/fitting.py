@@ -440,10 +440,11 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
     step = one_step(preps, effect_ids, bounds)
     ld, lq, rs_d = with_prior(step, prior)
     step.values, step.se = step.rescaled(ld, lq, bounds)
-    # R_s,d: the free run fits it where the records' i_d differs between them (MTPA: the d axis's
-    # steady state reads R_s,d i_d, better than the one-step's 1 - theta_0, about 1 % of theta_0);
-    # else the one-step's where it pins it down, else the q axis's (one winding)
-    free_d = d_current_varies(preps)
+    # R_s,d: with a nameplate R_s, the one-step's combined with it; else the free run fits it where
+    # the records' i_d differs between them (MTPA: the d axis's steady state reads R_s,d i_d, better
+    # than the one-step's 1 - theta_0, about 1 % of theta_0); else the one-step's where it pins it
+    # down, else the q axis's (one winding)
+    free_d = d_current_varies(preps) and "Rs" not in (prior or {})  # a nameplate R_s stands
     tied = rs_d is None and not free_d
     rs_d = float(np.clip(rs_d if rs_d is not None else 1.0, ld / TAU_MAX_S, ld / TAU_MIN_S))
     n_z = 3 if free_d else 2
