@@ -1,8 +1,8 @@
 """Refits of the dq model with named effects, and their hold-out evaluation.
 
 Model (physical units): L di/dt = v - R_s i - omega_e J L i - omega_e psi_m e_q + sum_j p_j c_j(k)
-for voltage effects, discretised exactly as :class:`agent.model.DQModel` does (its ``form``), and
-y = x + sum_j p_j c_j(k) for output effects.
+for voltage effects, discretised as :class:`agent.model.DQModel` does (its ``form``) to second
+order in T_s (``discretisation = "zoh2"``), and y = x + sum_j p_j c_j(k) for output effects.
 
 Frame (:func:`follow_current`): without an encoder the angle is the PLL's, refined by the current
 vector's angle below fe/2, so that the transmission's speed ripple is not mistaken for a motor-model
@@ -25,6 +25,12 @@ Why not all by free run: the free-run error contains the model's response to wha
 responsive model (larger L, larger R) shrinks it; on the rig simulator the free-run optimum lay at
 about 2 L_d, and every effect read through L_d (flux harmonics, dead time) came out twice its size.
 The compensated one-step regression gives L_d, L_q within 1 % and those effects within 5 %.
+
+Where the records cannot carry the base values alone (:func:`with_prior`, :func:`psi_range`): L_d,
+L_q are combined with the baseline's physical estimate (identify's, with the nameplate), each
+record's psi_m stays near it, and R_s,d is the free run's where i_d varies between records (MTPA),
+the nameplate's where there is one. Effects the one-step regression cannot pin down go to the
+free run. docs/workbench.md ("How it judges a model") gives the reasons and figures.
 
 Hold-out: each record is split in time; the fit uses its first ``FIT_FRACTION`` (at most
 ``max_fit_s`` seconds), the error is measured on the rest, from a free run over the whole record
