@@ -135,9 +135,7 @@ def psi_m_prior(profile: DriveProfile) -> float | None:
     m = profile.motor
     if profile.nameplate is not None and profile.nameplate.psi_m(m.pole_pairs) is not None:
         return profile.nameplate.psi_m(m.pole_pairs)
-    if m.rated_current_a is None:
-        return None
-    return m.rated_torque_nm / (1.5 * m.pole_pairs * np.sqrt(2.0) * m.rated_current_a)
+    return m.psi_m_from_rating
 
 
 def constrain(fit: FitResult, psi_m: float | None = None) -> None:

@@ -160,11 +160,17 @@ class DQModel:
         out the -(omega_e T_s)^2/2 of the rotating frame's exact transition matrix, a damping that
         a fit then books as resistance (R + omega_e^2 T_s L/2: +17 % at omega_e T_s = 0.05), which
         under MTPA shows on d as R i_d. omega_e^2 is linearised about the record's mean speed."""
-        a0, a1 = self.state_matrices()
         u = self.exogenous(sig)
         if self.discretisation == "euler":
-            return a0, a1, u
-        return (*zoh2_matrices(a0, a1, float(np.mean(sig.omega_e))), zoh2_input(a0, a1, sig.omega_e, u))
+            return (*self.state_matrices(), u)
+        a0, a1 = self.state_matrices()
+        return (*self.transition(float(np.mean(sig.omega_e))), zoh2_input(a0, a1, sig.omega_e, u))
+
+    def transition(self, omega_e: float) -> tuple[np.ndarray, np.ndarray]:
+        """(A0', A1') of :meth:`propagation` about the speed ``omega_e`` (rad/s; zoh2 linearises
+        omega_e^2 there, Euler does not need it)."""
+        a0, a1 = self.state_matrices()
+        return (a0, a1) if self.discretisation == "euler" else zoh2_matrices(a0, a1, omega_e)
 
     def psi_input(self, sig: Signals) -> np.ndarray:
         """u'(k) (2, N) of +1 Wb of magnet flux (the back-EMF column w on q, coefficient -T_s/L_q per Wb)."""
@@ -216,9 +222,7 @@ class DQModel:
 
     def spectral_radius(self, omega_e: float) -> float:
         """Largest |eigenvalue| of the state matrix at speed ``omega_e`` (rad/s); < 1 means stable."""
-        a0, a1 = self.state_matrices()
-        if self.discretisation != "euler":
-            a0, a1 = zoh2_matrices(a0, a1, omega_e)
+        a0, a1 = self.transition(omega_e)
         return float(np.max(np.abs(np.linalg.eigvals(a0 + omega_e * a1))))
 
     def physical(self, omega_e: float | None = None) -> dict[str, float]:

@@ -323,9 +323,8 @@ def _problems(z, z0, sd, priors, means, profile) -> list[str]:
         i = float(np.mean(np.hypot(means[:, 0], means[:, 1])))
         if rs * i > 0.5 * v:
             out.append(f"Rs = {rs:.3g} ohm would drop {rs * i:.3g} V of the {v:.3g} V applied")
-    m = profile.motor
-    if m.rated_voltage_v and m.rated_current_a:
-        z_base = m.rated_voltage_v / np.sqrt(3) / m.rated_current_a
+    z_base = profile.motor.z_base_ohm
+    if z_base:
         if not 1e-3 * z_base <= rs <= 0.5 * z_base:
             out.append(f"Rs = {rs:.3g} ohm is outside 0.001..0.5 of the nameplate impedance ({z_base:.3g} ohm)")
     return out

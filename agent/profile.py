@@ -24,6 +24,25 @@ class Motor:
     rated_voltage_v: float | None = None  #: line-to-line rms, optional
     rated_current_a: float | None = None  #: phase rms, optional
 
+    @property
+    def i_rated_peak(self) -> float | None:
+        """Rated phase current, A peak (the dq current vector's magnitude at rating)."""
+        return None if self.rated_current_a is None else self.rated_current_a * math.sqrt(2.0)
+
+    @property
+    def z_base_ohm(self) -> float | None:
+        """Rated impedance V_phase / I_phase (rms), ohm."""
+        if self.rated_voltage_v is None or self.rated_current_a is None:
+            return None
+        return self.rated_voltage_v / math.sqrt(3.0) / self.rated_current_a
+
+    @property
+    def psi_m_from_rating(self) -> float | None:
+        """Magnet flux linkage the rated torque needs at the rated current with i_d = 0, Wb
+        (T = 1.5 p psi_m i_q): reluctance torque only lowers it."""
+        i = self.i_rated_peak
+        return None if i is None else self.rated_torque_nm / (1.5 * self.pole_pairs * i)
+
 
 @dataclass(frozen=True)
 class Sampling:
@@ -179,9 +198,8 @@ def _check_nameplate(n: Nameplate, motor: Motor, source: str) -> None:
                              f"= {n.ke_vrms_per_krpm:g} V with {motor.pole_pairs} pole pairs ({from_ke:.4g} Wb)",
                              source=source)
     psi = n.psi_m(motor.pole_pairs)
-    if psi is not None and motor.rated_current_a is not None:
-        # rated torque needs at least the magnet torque of the rated current (reluctance torque only adds)
-        need = motor.rated_torque_nm / (1.5 * motor.pole_pairs * math.sqrt(2.0) * motor.rated_current_a)
+    need = motor.psi_m_from_rating
+    if psi is not None and need is not None:
         if not 0.3 * need <= psi <= 3.0 * need:
             key = "psi_m_wb" if n.psi_m_wb is not None else "ke_vrms_per_krpm"
             raise InputError(f"key 'nameplate.{key}' gives psi_m = {psi:.4g} Wb, but the rated torque and current "
@@ -189,8 +207,8 @@ def _check_nameplate(n: Nameplate, motor: Motor, source: str) -> None:
     for key in ("rs_tol_pct", "psi_m_tol_pct", "l_tol_pct"):
         if not 0 < getattr(n, key) <= 100:
             raise InputError(f"key 'nameplate.{key}' must be within 0..100 %", source=source)
-    if n.rs_ohm is not None and motor.rated_voltage_v is not None and motor.rated_current_a is not None:
-        z_base = motor.rated_voltage_v / math.sqrt(3) / motor.rated_current_a
+    z_base = motor.z_base_ohm
+    if n.rs_ohm is not None and z_base is not None:
         if not 1e-3 * z_base <= n.rs_ohm <= 0.5 * z_base:
             raise InputError(f"key 'nameplate.rs_ohm' = {n.rs_ohm:g} ohm is outside 0.001..0.5 of the rated "
                              f"impedance ({z_base:.3g} ohm)", source=source)

@@ -17,8 +17,7 @@ def not_running(sig, profile) -> str | None:
     fe = abs(float(np.mean(sig.omega_e))) / (2 * np.pi)
     if fe < MIN_FE_FRACTION * profile.rated_fe_hz:
         return f"not running: fe {fe:.2f} Hz is below {MIN_FE_FRACTION:.0%} of rated {profile.rated_fe_hz:.1f} Hz"
-    m = profile.motor
-    i_rated = m.rated_current_a * np.sqrt(2.0) if m.rated_current_a else None
+    i_rated = profile.motor.i_rated_peak
     i_mag = float(np.sqrt(np.mean(i[0] ** 2 + i[1] ** 2)))
     if i_rated and i_mag < MIN_CURRENT_FRACTION * i_rated:
         return f"not running: current {i_mag:.3f} A is below {MIN_CURRENT_FRACTION:.0%} of rated {i_rated:.2f} A"

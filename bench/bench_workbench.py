@@ -312,6 +312,11 @@ def main(argv=None) -> int:
     bad = [s for s in sims if s not in ("rig", "motulator")]
     if bad:
         p.error(f"--sims: unknown simulator {bad[0]!r} (rig, motulator)")
+    if "motulator" in sims:
+        try:
+            import motulator  # noqa: F401
+        except ImportError:
+            p.error("--sims motulator: motulator is not installed (make setup-test installs it)")
     if not 0.4 <= a.seconds <= 10:
         p.error(f"--seconds: {a.seconds:g} is outside 0.4..10 s (the hold-out needs half of each record)")
     if a.null < 0:

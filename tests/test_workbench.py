@@ -119,7 +119,7 @@ def _noisy_plant(n=40_000, sigma_v=0.5, sigma_i=0.005, seed=4):
 
 
 def test_zero_sequence_gives_the_channel_noise():
-    from agent.workbench.fitting import zero_sequence_sigma
+    from agent.physical import zero_sequence_sigma
 
     rng = np.random.default_rng(1)
     t = np.arange(50_000) * GEAR.ts

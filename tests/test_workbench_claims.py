@@ -17,25 +17,8 @@ from agent.records import Record, save_record
 from agent.simulator import simulate
 from agent.workbench import explain as ex
 from agent.workbench.fitting import fit_cost, heldout, prepare
-from bench.workbench_evidence import GEAR, GEAR_PATH, baseline
-from tests.test_workbench import assert_renders
-
-
-@pytest.fixture(scope="module")
-def base80():
-    return baseline(GEAR)
-
-
-@pytest.fixture(scope="module")
-def offset_files(tmp_path_factory):
-    d = tmp_path_factory.mktemp("claims")
-    for j in range(4):
-        save_record(simulate(GEAR, "healthy", 80.0, 1.0, seed=800 + j), d / f"h_{j}.npz")
-        save_record(simulate(GEAR, "healthy", (60.0, 100.0)[j % 2], 1.0, seed=810 + j,
-                             effects={"current_offset": 0.1}), d / f"x_{j}.npz")
-    assert main(["identify", "--profile", str(GEAR_PATH), "--window", "0.5", "--out", str(d / "m.json"),
-                 *map(str, sorted(d.glob("h_*.npz")))]) == 0
-    return d, sorted(str(p) for p in d.glob("x_*.npz"))
+from bench.workbench_evidence import GEAR
+from tests.test_workbench import assert_renders, base80, workflow  # noqa: F401 (fixtures)
 
 
 def _json(capsys, *argv):
@@ -45,9 +28,9 @@ def _json(capsys, *argv):
     return json.loads(out)
 
 
-def test_one_error_figure_in_compare_explain_add_effect_history(capsys, offset_files):
+def test_one_error_figure_in_compare_explain_add_effect_history(capsys, workflow):
     """The same model on the same records: the same NRMSE from every command, and fit % its complement."""
-    d, data = offset_files
+    d, data = workflow
     model = str(d / "m.json")
     comp = _json(capsys, "model", "compare", "--model", model, *data)
     expl = _json(capsys, "model", "explain", "--model", model, *data)
@@ -66,8 +49,8 @@ def test_one_error_figure_in_compare_explain_add_effect_history(capsys, offset_f
     assert again["coverage"]["load_pct_range"][0] < 70 < 90 < again["coverage"]["load_pct_range"][1]
 
 
-def test_add_effect_never_overwrites_a_model(capsys, offset_files):
-    d, data = offset_files
+def test_add_effect_never_overwrites_a_model(capsys, workflow):
+    d, data = workflow
     target = d / "taken.json"
     target.write_text("{}")
     code = main(["model", "add-effect", "--model", str(d / "m.json"), "--effect", "current_offset",
@@ -77,12 +60,12 @@ def test_add_effect_never_overwrites_a_model(capsys, offset_files):
     assert target.read_text() == "{}"
 
 
-def test_unstable_free_run_is_reported_not_a_number(base80, capsys, offset_files, tmp_path):
+def test_unstable_free_run_is_reported_not_a_number(base80, capsys, workflow, tmp_path):
     """A model whose free run diverges (negative resistance) has no NRMSE: a note says when it left
     and what the one-step figure is."""
     from agent.modelfile import load_baseline, save_baseline
 
-    d, data = offset_files
+    d, data = workflow
     bad = load_baseline(d / "m.json")
     p = bad.model.physical()
     bad.model.from_physical(-5 * p["Rs_q"], p["Ld"], p["Lq"], p["psi_m"])
@@ -97,11 +80,11 @@ def test_unstable_free_run_is_reported_not_a_number(base80, capsys, offset_files
     assert all(v is None for r in comp["table"] for v in r["nrmse"].values())
 
 
-def test_diagnose_report_has_the_cluster_and_each_spectrum(capsys, offset_files, tmp_path):
+def test_diagnose_report_has_the_cluster_and_each_spectrum(capsys, workflow, tmp_path):
     """`diagnose --report DIR`: the decision table, the cluster plot (Figs. 9, 11) and one spectrum
     plot per record with TH1-TH3 and the fault sidebands (Figs. 8, 10); rendered by Chromium."""
-    d, data = offset_files
-    healthy = sorted(str(p) for p in d.glob("h_*.npz"))[:2]
+    d, data = workflow
+    healthy = sorted(str(p) for p in d.glob("h80_*.npz"))[:2]
     severe = tmp_path / "severe.npz"
     save_record(simulate(GEAR, "gear_severe_wear", 80.0, 1.0, seed=830), severe)
     doc = _json(capsys, "diagnose", "--model", str(d / "m.json"), "--report", str(tmp_path / "dg"),
@@ -235,3 +218,28 @@ def test_saturation_under_mtpa_needs_the_nameplate_resistance():
     assert not without["significant"] and not without["identifiable"] and "nameplate.rs_ohm" in without["note"]
     with_plate = b.scenario("magnetic_saturation+nameplate", scs["magnetic_saturation+nameplate"])
     assert with_plate["rank"] == 1 and with_plate["significant"] and abs(with_plate["error"]) <= 0.2
+
+
+@pytest.mark.parametrize("w_ts", [0.025, 0.05])
+def test_zoh2_matches_the_exact_hold_solution_where_euler_does_not(w_ts):
+    """The refit's discretisation against the exact zero-order-hold solution of the continuous dq
+    equations (scipy expm of the augmented system), at the rig's and motulator's omega_e T_s:
+    transition and input matrices within a tenth of Euler's error."""
+    import scipy.linalg
+
+    from agent.workbench.fitting import base_model
+
+    ts, r, ld, lq, psi = 1e-4, 3.6, 0.036, 0.051, 0.5
+    w = w_ts / ts
+    m = base_model("speed", ts, w / (2 * np.pi), {"Rs_d": r, "Rs_q": r, "Ld": ld, "Lq": lq, "Lq_x": lq, "psi_m": psi})
+    ac = np.array([[-r / ld, w * lq / ld], [-w * ld / lq, -r / lq]])
+    bc = np.diag([1 / ld, 1 / lq])
+    aug = scipy.linalg.expm(np.block([[ac, bc], [np.zeros((2, 4))]]) * ts)
+    phi, gamma = aug[:2, :2], aug[:2, 2:]
+    a0, a1 = m.transition(w)
+    euler = m.state_matrices()
+    zoh2_a, euler_a = a0 + w * a1, euler[0] + w * euler[1]
+    zoh2_b = 0.5 * (np.eye(2) + euler_a) @ np.diag([m.theta_d[2], m.theta_q[2]])
+    euler_b = np.diag([m.theta_d[2], m.theta_q[2]])
+    assert np.abs(zoh2_a - phi).max() < 0.1 * np.abs(euler_a - phi).max()
+    assert np.abs(zoh2_b - gamma).max() < 0.1 * np.abs(euler_b - gamma).max()

@@ -46,12 +46,14 @@ def start_values(model) -> dict:
     return {k: v if np.isfinite(v) and 1e-4 < v < 1e3 else fallback[k] for k, v in guess.items()}
 
 
+def rated_current(motor, psi_m: float) -> float:
+    """Rated current, A peak: the nameplate's, else the rated torque's at ``psi_m`` (Wb, i_d = 0)."""
+    return motor.i_rated_peak or motor.rated_torque_nm / (1.5 * motor.pole_pairs * max(psi_m, 1e-3))
+
+
 def context(ref, preps: list[Prepared], profile) -> dict:
     """What an effect's ``report`` needs: fitted base values, the rated current, the records' signals."""
-    m = profile.motor
-    i_rated = (m.rated_current_a * np.sqrt(2) if m.rated_current_a
-               else m.rated_torque_nm / (1.5 * m.pole_pairs * max(ref.phys["psi_m"], 1e-3)))
-    return {**ref.phys, "i_rated": float(i_rated), "ts": profile.ts,
+    return {**ref.phys, "i_rated": float(rated_current(profile.motor, ref.phys["psi_m"])), "ts": profile.ts,
             "t_mid": float(np.mean([0.5 * p.sig.n * p.sig.ts for p in preps])),
             "signals": [p.sig for p in preps]}
 
@@ -72,15 +74,11 @@ def drive_base(baseline) -> dict:
     m = baseline.profile.motor
     model_phys = baseline.model.physical()
     est = (baseline.physical or {}).get("values") or {}
-    phys = {"Rs_q": est.get("Rs") or model_phys["Rs_q"], "Lq": est.get("Lq") or model_phys["Lq"],
+    base = {"Rs_q": est.get("Rs") or model_phys["Rs_q"], "Lq": est.get("Lq") or model_phys["Lq"],
             "psi_m": est.get("psi_m") or model_phys["psi_m"]}
-    base = {k: phys.get(src) for k, src in (("Rs_q", "Rs_q"), ("Lq", "Lq"), ("psi_m", "psi_m"))}
     base = {k: float(v) for k, v in base.items() if v is not None and np.isfinite(v) and v > 0}
-    psi = base.get("psi_m", 0.0)
-    if m.rated_current_a:
-        base["i_rated"] = m.rated_current_a * np.sqrt(2)
-    elif psi > 0 and m.rated_torque_nm:
-        base["i_rated"] = m.rated_torque_nm / (1.5 * m.pole_pairs * psi)
+    if m.i_rated_peak or "psi_m" in base:
+        base["i_rated"] = rated_current(m, base.get("psi_m", 0.0))
     if m.rated_voltage_v:
         base["v_rated"] = m.rated_voltage_v * np.sqrt(2.0 / 3.0)
     return base

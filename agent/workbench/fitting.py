@@ -54,7 +54,8 @@ from agent.errors import InputError
 from agent.identify import operating_point, record_signals
 from agent.sanity import not_running
 from agent.kernels import simulate_ltv
-from agent.model import BASE_TERMS, DQModel, Signals, lumped_params, nrmse, regressors, zoh2_matrices
+from agent.physical import zero_sequence_sigma
+from agent.model import BASE_TERMS, DQModel, Signals, lumped_params, nrmse, regressors, zoh2_input, zoh2_matrices
 from agent.profile import DriveProfile
 from agent.records import Record
 
@@ -179,7 +180,7 @@ class OneStep:
     values: dict  #: voltage effect id -> parameter values (their units)
     se: dict  #: voltage effect id -> their standard errors
     rel_se: dict = field(default_factory=dict)  #: "Ld", "Lq": relative standard errors; "Rs_d": absolute (ohm)
-    axes: tuple = ()  #: (est_d, var_d, est_q, var_q): each axis's effect estimates theta / (T_s / L_x) and variances
+    axes: tuple = ()  #: (est_d, var_d, est_q, var_q): each axis's effect estimates theta / (T_s / L_x), variances
     layout: dict = field(default_factory=dict)  #: effect id -> its slice in ``axes``' vectors
 
     def rescaled(self, ld: float, lq: float, bounds: dict) -> tuple[dict, dict]:
@@ -187,8 +188,6 @@ class OneStep:
         regression's own T_s/L: an effect column is free of the channels' noise, the voltage
         column is not, so where the refit has better inductances (a prior) they convert better
         (dead time on smooth data: +39 % through the one-step L_d, +7 % through the prior's)."""
-        if not self.axes:
-            return dict(self.values), dict(self.se)
         est_d, var_d, est_q, var_q = self.axes
         k_d, k_q = ld / self.ld, lq / self.lq
         values, se = {}, {}
@@ -282,26 +281,14 @@ def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None) -
             var.append(np.where(np.diag(g)[cols] > 0, cov[cols] / b**2, np.inf))  # a zero column: no estimate
             new_coef.append((float(theta[0]), float(theta[1])))  # i_x and w * i_other: the state matrix's row
         coef = new_coef
-    combined, se_all = _inverse_variance((est[0], var[0]), (est[1], var[1]))
-    values, se, layout, j = {}, {}, {}, 0
+    layout, j = {}, 0
     for e_idx, e in enumerate(effs):
         if within[e_idx] >= WITHIN_MIN * total[e_idx]:
-            cut = slice(j, j + len(e.params))
-            lo, hi = (bounds or effect_bounds([e.id], None))[e.id]
-            values[e.id] = np.clip(combined[cut], lo, hi)
-            se[e.id] = se_all[cut]
-            layout[e.id] = cut
+            layout[e.id] = slice(j, j + len(e.params))
         j += len(e.params)
-    return OneStep(float(ls[0]), float(ls[1]), float(rs_d), values, se, rel, (est[0], var[0], est[1], var[1]), layout)
-
-
-def zero_sequence_sigma(x_abc: np.ndarray) -> float:
-    """Per-phase rms of the channels' white noise, from the zero sequence (x_a + x_b + x_c)/3 of a
-    three-wire machine, which carries only the channels' own noise (variance sigma^2/3). The median
-    of its periodogram (ln 2 sigma0^2 for white noise) ignores lines (a third-harmonic EMF)."""
-    x0 = x_abc.sum(axis=0) / 3.0
-    per = np.abs(np.fft.rfft(x0 - x0.mean())[1:]) ** 2 / x0.size
-    return float(np.sqrt(3.0 * np.median(per) / np.log(2.0)))
+    step = OneStep(float(ls[0]), float(ls[1]), float(rs_d), {}, {}, rel, (est[0], var[0], est[1], var[1]), layout)
+    step.values, step.se = step.rescaled(step.ld, step.lq, bounds or effect_bounds(layout, None))
+    return step
 
 
 def noise_signals(s: Signals) -> tuple[Signals, Signals]:
@@ -366,7 +353,7 @@ class Refit:
 
 
 CONFLICT_SD = 3.0  #: a prior further than this many combined sd from the records' own estimate is not used
-RS_D_PRECISION = 0.3  #: R_s,d from the one-step regression is used when known to this share; else the free run fits it
+RS_D_PRECISION = 0.3  #: R_s,d from the one-step regression (or with the nameplate) is used when known to this share
 
 
 def with_prior(step: OneStep, prior: dict | None) -> tuple[float, float, float | None]:
@@ -374,9 +361,7 @@ def with_prior(step: OneStep, prior: dict | None) -> tuple[float, float, float |
     (value, relative sd)}, e.g. the baseline's physical estimate or the nameplate) by inverse
     variance, L in log space, unless the two conflict (``CONFLICT_SD``: the records differ from
     the baseline's, a missing effect or another load, and their own estimate stands). R_s,d is None
-    where neither pins it to ``RS_D_PRECISION``: the
-    refit then fits R_s,d by the free run as well where the records' i_d differs (MTPA: the d axis's
-    steady state reads R_s,d i_d), else takes R_s,d = R_s,q (one winding)."""
+    where neither pins it to ``RS_D_PRECISION`` (:func:`refit` says what it takes then)."""
     prior = prior or {}
     out = []
     for key, value in (("Ld", step.ld), ("Lq", step.lq)):
@@ -386,7 +371,6 @@ def with_prior(step: OneStep, prior: dict | None) -> tuple[float, float, float |
             if abs(np.log(value / p)) <= CONFLICT_SD * np.hypot(rel, p_rel):  # else the records differ: theirs
                 w1, w0 = 1.0 / max(rel, 1e-12) ** 2, 1.0 / max(p_rel, 1e-12) ** 2
                 value = float(np.exp((w1 * np.log(value) + w0 * np.log(p)) / (w1 + w0)))
-
         elif key in prior and not (np.isfinite(value) and value > 0):
             value = prior[key][0]
         out.append(value)
@@ -490,7 +474,7 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
                     x0[j] = -row[:, 0]
             # zoh2 (agent.model.DQModel.propagation): (I + A^2)/2 and (I + A)/2 u
             h0, h1 = zoh2_matrices(a0, a1, float(np.mean(omega)))
-            u = 0.5 * (u + np.einsum("ij,mjk->mik", a0, u) + omega * np.einsum("ij,mjk->mik", a1, u))
+            u = zoh2_input(a0, a1, omega, u)  # (M, 2, N): matmul broadcasts over the inputs
             r = _sim_batch(h0, h1, omega, u, x0)[:, :, ::DECIMATE]
             for j, (kind, row) in enumerate(rows, start=2):
                 if kind == "output":
@@ -670,7 +654,7 @@ def flux_adapted(model: DQModel, p: Prepared) -> np.ndarray:
     omega_e L_q / R_s (~3 at rated speed) amplifies on d; the agent re-identifies it anyway. One
     scalar per record, from data the held-out segment does not include."""
     y = model.simulate(p.sig)
-    a0, a1, _ = model.propagation(p.sig)
+    a0, a1 = model.transition(float(np.mean(p.sig.omega_e)))
     r = simulate_ltv(a0, a1, p.sig.omega_e, model.psi_input(p.sig), np.zeros(2))  # +1 Wb of psi_m
     f = p.fit_slice
     den = float(np.sum(r[:, f] ** 2))
