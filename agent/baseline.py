@@ -281,10 +281,8 @@ class BaselineBuilder:
         """Healthy statistics of the alarm evidence, or None with fewer than 4 stretches."""
         if len(self.stretch_windows) < 4:
             return None
-        return EvidenceStats.fit(
-            self.features(), np.array([w.mean(axis=0) for w in self.stretch_windows]),
-            np.concatenate(self.stretch_windows), np.array(self.stretch_cluster), np.array(self.stretch_load),
-            self.stretch_s, self.profile, self.consecutive)
+        return EvidenceStats.fit(self.features(), self.stretch_windows, np.array(self.stretch_cluster),
+                                 np.array(self.stretch_load), self.stretch_s, self.profile, self.consecutive)
 
 
 def identify_baseline(records: list[Record], profile: DriveProfile, *, refine: bool = False, progress=None,

@@ -140,7 +140,7 @@ def cmd_identify(args) -> None:
     doc = {"model": str(args.out), "records": len(recs), "params": params,
            "operating_point": {k: base.operating_point[k] for k in ("fe_hz", "load_pct")},
            "cluster": {"centre": base.cluster.centre, "limit": base.cluster.limit, "region": base.cluster.region},
-           "seconds": round(time.perf_counter() - t0, 3)}
+           "seconds": round(time.perf_counter() - t0, 3), "alarm": _alarm_evidence(base)}
     for g in phys["unidentifiable"]:
         if g["from_nameplate"]:
             log.info("%s taken from the nameplate: %s", ", ".join(g["parameters"]), g["reason"])
@@ -156,7 +156,20 @@ def cmd_identify(args) -> None:
         f"baseline from {len(recs)} records -> {args.out}" + (" (FORCED: nonphysical)" if phys["problems"] else "") + "\n"
         f"operating point: fe {doc['operating_point']['fe_hz']:.2f} Hz, load {doc['operating_point']['load_pct']:.1f} %\n"
         "physical parameters:\n" + "\n".join(lines) + "\n"
-        f"cluster centre: Ts/Lq {params['ts_over_lq']:.4e}, B_GT {params['b_gt']:.5f} N m s/rad"))
+        f"cluster centre: Ts/Lq {params['ts_over_lq']:.4e}, B_GT {params['b_gt']:.5f} N m s/rad\n"
+        f"alarm evidence: {doc['alarm']['stretches']} independent stretches; one-window (gross) alarms above "
+        f"window z {doc['alarm']['gross_threshold_z'][0]:.1f}-{doc['alarm']['gross_threshold_z'][1]:.1f}"
+        + ("" if doc["alarm"]["stretches"] >= 40 else
+           " (few stretches widen it: the agent's commissioning, 40 stretches of 30 s, gives about 6)")))
+
+
+def _alarm_evidence(base) -> dict:
+    """The baseline's healthy evidence for the agent's alarms and its one-window threshold range
+    at the default gross budget (docs/method.md, "Alarms")."""
+    from agent.evidence import AlarmConfig
+
+    g, _ = AlarmConfig().gross_thresholds(base.evidence)
+    return {"stretches": base.evidence.n, "gross_threshold_z": [round(float(g.min()), 2), round(float(g.max()), 2)]}
 
 
 def cmd_diagnose(args) -> None:

@@ -21,10 +21,11 @@ ripple, temperature, lubricant film), so windows are not independent tests.
   gives warning. The cap bounds what one stretch can add (z_cap - k), so no single outlier trips
   it. h is set from the false-alarm budget with Siegmund's ARL approximation
   (:func:`cusum_threshold`).
-* **Gross path:** a feature whose newest window is ``gross_z`` prediction sds above the healthy
-  mean (single-window spread) is a warning in the current hop: within one window plus one hop of
-  a gross fault's onset. The cluster's gross test reads whole stretches (a 4 s span's cluster point
-  is too noisy: measured, docs/method.md).
+* **Gross path:** a feature whose newest window is so far above the healthy mean (in prediction
+  sds of single windows) that healthy operation reaches it less than the gross budget allows
+  (:meth:`AlarmConfig.gross_thresholds`, ~6 after commissioning) is a warning in the current hop:
+  within one window plus one hop of a gross fault's onset. The cluster's gross test reads whole
+  stretches (a 4 s span's cluster point is too noisy: measured, docs/method.md).
 * **Parameter cluster** (Ts/Lq, B_GT), Alg. 4, made load-invariant: B_GT is the mean shaft torque
   over speed, so it moves with load; it is compared after removing the load's physical share,
   dB_GT/dload = P_rated / (100 omega_m^2) per %-point. A friction increase that shows up only as
@@ -123,6 +124,53 @@ def chi2_lower(q: float, dof: int) -> float:
     return dof * (1.0 - 2.0 / (9 * dof) + z * math.sqrt(2.0 / (9 * dof))) ** 3
 
 
+def _beta_cf(a: float, b: float, x: float) -> float:
+    """Continued fraction of the regularised incomplete beta function (modified Lentz)."""
+    tiny = 1e-300
+    c, d = 1.0, 1.0 - (a + b) * x / (a + 1.0)
+    d = 1.0 / (d if abs(d) > tiny else tiny)
+    f = d
+    for m in range(1, 500):
+        for num in (m * (b - m) * x / ((a + 2 * m - 1) * (a + 2 * m)),
+                    -(a + m) * (a + b + m) * x / ((a + 2 * m) * (a + 2 * m + 1))):
+            d = 1.0 + num * d
+            d = 1.0 / (d if abs(d) > tiny else tiny)
+            c = 1.0 + num / c
+            c = c if abs(c) > tiny else tiny
+            f *= c * d
+        if abs(c * d - 1.0) < 1e-15:
+            break
+    return f
+
+
+def student_t_sf(t: float, dof: float) -> float:
+    """P(T > t) of Student's t with ``dof`` degrees of freedom, t >= 0 (incomplete beta)."""
+    x = dof / (dof + t * t)
+    a, b = 0.5 * dof, 0.5
+    log_front = math.lgamma(a + b) - math.lgamma(a) - math.lgamma(b) + a * math.log(x) + b * math.log1p(-x)
+    if x < (a + 1.0) / (a + b + 2.0):
+        ib = math.exp(log_front) * _beta_cf(a, b, x) / a
+    else:
+        ib = 1.0 - math.exp(log_front) * _beta_cf(b, a, 1.0 - x) / b
+    return 0.5 * ib
+
+
+@lru_cache(maxsize=256)
+def student_t_isf(p: float, dof: float) -> float:
+    """t with P(T > t) = p (0 < p < 0.5), by bisection on :func:`student_t_sf`; inf for p <= 1e-300."""
+    if p <= 1e-300:
+        return math.inf
+    lo, hi = 0.0, 1.0
+    while student_t_sf(hi, dof) > p:
+        lo, hi = hi, 2.0 * hi
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if student_t_sf(mid, dof) > p else (lo, mid)
+        if hi - lo < 1e-9 * hi:
+            break
+    return hi
+
+
 def cusum_arl(h: float, k: float, shift: float = 0.0) -> float:
     """Siegmund's approximation of the average run length (stretches) of a one-sided CUSUM with
     unit-variance normal increments of mean ``shift``, reference ``k`` and threshold ``h``."""
@@ -140,6 +188,27 @@ def cusum_threshold(arl: float, k: float) -> float:
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if cusum_arl(mid, k) < arl else (lo, mid)
     return hi
+
+
+def effective_size(d: list[np.ndarray]) -> tuple[float, float, float]:
+    """(mean, variance, effective sample size) of a block statistic given per record: the blocks of
+    one record are autocorrelated, the records independent. n_eff = N / (1 + 2 sum rho_k), rho_k
+    pooled over the records about the grand mean (so a record-to-record spread reads as
+    correlation), summed while positive (Geyer's initial positive sequence) and floored at the
+    number of records."""
+    n = sum(x.size for x in d)
+    mean = float(np.mean(np.concatenate(d)))
+    dev = [x - mean for x in d]
+    g0 = sum(float(x @ x) for x in dev) / n
+    if g0 <= 0:
+        return mean, 0.0, float(len(d))
+    s = 0.0
+    for k in range(1, max(x.size for x in d)):
+        rho = sum(float(x[k:] @ x[:-k]) for x in dev if x.size > k) / n / g0
+        if rho <= 0:
+            break
+        s += rho
+    return mean, g0, float(np.clip(n / (1.0 + 2.0 * s), len(d), n))
 
 
 def learning_shift(stretch_y: np.ndarray) -> tuple[int, float]:
@@ -172,7 +241,7 @@ class EvidenceStats:
     features: list[Feature]
     mean: np.ndarray  #: (F,) stretch mean of each feature (ln A)
     sd: np.ndarray  #: (F,) sd between stretches
-    window_sd: np.ndarray  #: (F,) sd of single spans/windows about the mean (gross path)
+    window_sd: np.ndarray  #: (F,) sd of single windows about the mean (gross path; Bessel-corrected with n_eff)
     rho: float  #: lag-1 correlation of consecutive stretches (0 when stretches are separate records)
     n: int  #: independent stretches
     stretch_s: float  #: s of operation per stretch
@@ -180,18 +249,23 @@ class EvidenceStats:
     b_gt_per_pct: float  #: physical slope dB_GT/dload, N m s/rad per %-point
     cluster_mean: np.ndarray  #: (2,) load-adjusted (Ts/Lq, B_GT)
     cluster_cov: np.ndarray  #: (2, 2) between stretches
+    window_n_eff: np.ndarray | None = None  #: (F,) independent windows among the learned ones (None: n)
 
     @classmethod
-    def fit(cls, features: list[Feature], stretch_y: np.ndarray, window_y: np.ndarray, stretch_cluster: np.ndarray,
+    def fit(cls, features: list[Feature], windows: list[np.ndarray], stretch_cluster: np.ndarray,
             stretch_load: np.ndarray, stretch_s: float, profile, consecutive: bool) -> "EvidenceStats":
-        """From ``stretch_y`` (n, F) stretch means, ``window_y`` (m, F) single windows, the cluster
-        points (n, 2) and loads (n,) of the stretches; ``consecutive``: the stretches follow each
-        other in one stream (their lag-1 correlation is estimated)."""
-        n = stretch_y.shape[0]
+        """From the windows' feature values of each stretch (a list of (m_i, F), in time order), the
+        cluster points (n, 2) and loads (n,) of the stretches; ``consecutive``: the stretches follow
+        each other in one stream (their lag-1 correlation is estimated)."""
+        n = len(windows)
         if n < 4:
             raise ValueError(f"need at least 4 independent stretches, got {n}")
+        windows = [np.atleast_2d(w) for w in windows]
+        stretch_y = np.array([w.mean(axis=0) for w in windows])
+        window_y = np.concatenate(windows)
         mean, sd = stretch_y.mean(axis=0), stretch_y.std(axis=0, ddof=1)
-        window_sd = np.sqrt(np.mean((window_y - mean) ** 2, axis=0))
+        n_eff = np.array([effective_size([w[:, j] for w in windows])[2] for j in range(window_y.shape[1])])
+        window_sd = np.sqrt(np.mean((window_y - mean) ** 2, axis=0) * n_eff / np.maximum(n_eff - 1.0, 1.0))
         rho = 0.0
         if consecutive and n >= 8:
             c = stretch_y - mean
@@ -205,7 +279,7 @@ class EvidenceStats:
         c_mean = sc.mean(axis=0)
         c_cov = np.cov(sc, rowvar=False) + np.eye(2) * 1e-12 * (1.0 + c_mean ** 2)
         return cls(features, mean, np.maximum(sd, 1e-6), np.maximum(window_sd, 1e-6), rho, n, float(stretch_s),
-                   load0, slope, c_mean, c_cov)
+                   load0, slope, c_mean, c_cov, n_eff)
 
     # -- standardisation ------------------------------------------------------------------------
     @property
@@ -240,7 +314,8 @@ class EvidenceStats:
                 "mean": self.mean.tolist(), "sd": self.sd.tolist(), "window_sd": self.window_sd.tolist(),
                 "rho": self.rho, "n": self.n, "stretch_s": self.stretch_s, "load_pct": self.load_pct,
                 "b_gt_per_pct": self.b_gt_per_pct, "cluster_mean": self.cluster_mean.tolist(),
-                "cluster_cov": self.cluster_cov.tolist()}
+                "cluster_cov": self.cluster_cov.tolist(),
+                "window_n_eff": None if self.window_n_eff is None else self.window_n_eff.tolist()}
 
     @classmethod
     def from_json(cls, d: dict) -> "EvidenceStats":
@@ -249,7 +324,7 @@ class EvidenceStats:
         arr = lambda key: np.array(d[key], dtype=float)  # noqa: E731
         return cls(feats, arr("mean"), arr("sd"), arr("window_sd"), float(d["rho"]), int(d["n"]),
                    float(d["stretch_s"]), float(d["load_pct"]), float(d["b_gt_per_pct"]), arr("cluster_mean"),
-                   arr("cluster_cov"))
+                   arr("cluster_cov"), None if d.get("window_n_eff") is None else arr("window_n_eff"))
 
 
 # --- the streaming decision ------------------------------------------------------------------------
@@ -263,7 +338,7 @@ class AlarmConfig:
     warn_k: float = 3.0  #: reference shift of the warning path (beyond the paper's TH3)
     z_cap: float = 4.0  #: a stretch adds at most z_cap - k to a CUSUM (one outlier cannot trip it)
     false_alarms_per_month: float = 0.1  #: design budget of the slow path per drive (Siegmund ARL)
-    gross_z: float = 8.0  #: prediction sds above healthy for a warning in the current hop
+    gross_false_alarms_per_month: float = 0.1  #: design budget of the gross path per drive (:meth:`gross_thresholds`)
     settle_s: float = 10.0  #: s of held decision after an operating-point change
     settle_load_pct: float = 1.0  #: load change between hops (%-points) that starts settling
     settle_fe_hz: float = 0.2  #: fe change between hops (Hz) that starts settling
@@ -272,6 +347,24 @@ class AlarmConfig:
         """CUSUM threshold h: in-control ARL of every test together >= one month / budget."""
         arl = MONTH_S / stretch_s * n_tests / self.false_alarms_per_month
         return cusum_threshold(arl, self.cusum_k)
+
+    def gross_thresholds(self, stats: "EvidenceStats") -> tuple[np.ndarray, float]:
+        """Gross-path thresholds: per feature in window z (F,), and the cluster's in stretch z.
+
+        The features and the cluster share :attr:`gross_false_alarms_per_month` equally. A feature's
+        trials are its independent windows: learning saw ``window_n_eff`` of them in n stretches of
+        ``stretch_s`` (:func:`effective_size`: one session's windows are nearly one value), so a
+        month holds MONTH_S n_eff / (n stretch_s); the cluster's trials are stretches. Per trial the
+        healthy value is Student t with (independent values learned - 1) dof: the mean and spread
+        are estimates, and few of them widen the threshold.
+        """
+        stretch_s = max(self.stretch_s, stats.stretch_s)
+        tests = len(stats.features) + 1
+        n_eff = np.full(len(stats.features), float(stats.n)) if stats.window_n_eff is None else stats.window_n_eff
+        trials = MONTH_S * n_eff / (stats.n * stats.stretch_s)
+        p = self.gross_false_alarms_per_month / tests
+        feat = np.array([student_t_isf(p / t, max(ne - 1.0, 1.0)) for t, ne in zip(trials, n_eff)])
+        return feat, student_t_isf(p / (MONTH_S / stretch_s), max(stats.n - 1.0, 1.0))
 
 
 @dataclass
@@ -316,6 +409,8 @@ class AlarmLogic:
         self._last: Verdict = Verdict("normal", "normal", "normal", {})
         self.last_z: dict[str, float] = {}  #: the last stretch's z per test (diagnostics, benchmark)
         self._cluster_gross: dict | None = None
+        self._gross_for: EvidenceStats | None = None
+        self._gross_th: tuple[np.ndarray, float] = (np.zeros(0), math.inf)
 
     def reset(self) -> None:
         """Forget accumulated evidence (e.g. after maintenance or an acknowledged repair)."""
@@ -325,6 +420,11 @@ class AlarmLogic:
         names = [f.name for f in stats.features] + ["cluster"]
         stretch_s = max(self.config.stretch_s, stats.stretch_s)
         return names, self.config.threshold(len(names), stretch_s)
+
+    def _gross(self, stats: EvidenceStats) -> tuple[np.ndarray, float]:
+        if self._gross_for is not stats:
+            self._gross_for, self._gross_th = stats, self.config.gross_thresholds(stats)
+        return self._gross_th
 
     def step(self, stats: EvidenceStats, profile, window_y: np.ndarray, cluster_point, load_pct: float,
              fe_hz: float, hop_s: float) -> Verdict:
@@ -346,13 +446,14 @@ class AlarmLogic:
 
         # gross path: the newest window alone
         gross = None
-        z_win = stats.window_z(window_y)
-        j = int(np.argmax(z_win))
-        if z_win[j] >= cfg.gross_z:
+        g_feat, g_cluster = self._gross(stats)
+        over = stats.window_z(window_y) - g_feat
+        j = int(np.argmax(over))
+        if over[j] >= 0.0:
             feat = stats.features[j]
             gross = {"path": "gross", "feature": feat.name, "families": list(feat.families),
                      "freqs_hz": [round(x, 2) for x in feat.freqs_hz(profile, fe_hz)],
-                     "z": round(float(z_win[j]), 2), "threshold": cfg.gross_z}
+                     "z": round(float(over[j] + g_feat[j]), 2), "threshold": round(float(g_feat[j]), 2)}
 
         # slow path: a CUSUM step per completed stretch
         st = self._stretch
@@ -362,9 +463,9 @@ class AlarmLogic:
             z = np.append(stats.stretch_z(st.y / st.hops), stats.cluster_z(st.cluster / st.hops, st.load / st.hops))
             self.last_z = dict(zip(names, np.round(z, 3).tolist()))
             # the cluster's gross test reads a whole stretch, and its verdict stands until the next
-            self._cluster_gross = None if z[-1] < cfg.gross_z else {
+            self._cluster_gross = None if z[-1] < g_cluster else {
                 "path": "gross", "feature": "cluster", "families": ["cluster"], "z": round(float(z[-1]), 2),
-                "threshold": cfg.gross_z}
+                "threshold": round(g_cluster, 2)}
             for name, zi in zip(names, z):
                 self.s_caution[name] = min(2 * h, max(0.0, self.s_caution.get(name, 0.0) + min(zi, cfg.z_cap) - cfg.cusum_k))
                 self.s_warning[name] = min(2 * h, max(0.0, self.s_warning.get(name, 0.0)

@@ -18,6 +18,11 @@ ROOT = Path(__file__).resolve().parent.parent
 PROFILE_PATH = ROOT / "config" / "profiles" / "rig_gear.toml"
 RATE = 25_000.0
 BASELINE_SEEDS = tuple(range(12))
+#: The runtime tests' baselines hold 12 records (or a short commissioning), far less healthy evidence
+#: than the default commissioning's 40 stretches: the default gross budget then puts the one-window
+#: threshold above 10 (docs/method.md, "Alarms"). Tests of the pipeline's mechanics (timing, block
+#: sizes, transports) relax the budget rather than commission for 20 minutes.
+RELAXED_GROSS = 100.0  #: false alarms per drive-month allowed to the gross path in those tests
 
 
 @functools.lru_cache(maxsize=None)

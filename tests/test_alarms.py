@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from agent.evidence import (AlarmConfig, AlarmLogic, EvidenceStats, Feature, cusum_arl, cusum_threshold,
-                            make_features)
+                            make_features, student_t_isf, student_t_sf)
 from agent.library import ModelLibrary
 from agent.pipeline import DriveMonitor, PipelineConfig
 from bench.alarm_scenarios import Plant, Operation, commission, stream
@@ -95,7 +95,7 @@ def _stats(n: int, sd: float = 0.1, features=None) -> EvidenceStats:
     y = rng.standard_normal((n, len(features))) * sd
     y = (y - y.mean(0)) / y.std(0, ddof=1) * sd  # exactly mean 0, sd sd
     cl = np.column_stack((1e-3 + rng.standard_normal(n) * 1e-6, 0.07 + rng.standard_normal(n) * 1e-4))
-    return EvidenceStats.fit(features, y, y, cl, np.full(n, 80.0), 30.0, profile(), consecutive=False)
+    return EvidenceStats.fit(features, list(y[:, None, :]), cl, np.full(n, 80.0), 30.0, profile(), consecutive=False)
 
 
 def test_few_stretches_widen_the_standardisation():
@@ -107,8 +107,58 @@ def test_few_stretches_widen_the_standardisation():
     for st, n in ((few, 6), (many, 200)):  # mean at its 95 % upper bound, sd at its 95 % upper bound
         expected = (3.0 - 1.645 / math.sqrt(n)) / math.sqrt((n - 1) / chi2.ppf(0.05, n - 1))
         assert st.stretch_z(y)[0] == pytest.approx(expected, rel=0.02)
-    rms = 0.1 * math.sqrt(5 / 6)  # single windows' rms spread about the mean (here the stretches themselves)
-    assert few.window_z(y)[0] == pytest.approx(0.3 / rms / math.sqrt(1 + 1 / 6))
+    # single windows' spread about the mean (here one window per stretch: the stretches' sd)
+    assert few.window_z(y)[0] == pytest.approx(0.3 / 0.1 / math.sqrt(1 + 1 / 6))
+
+
+def test_student_t_tail_against_scipy():
+    from scipy.stats import t
+
+    for dof in (3, 9, 39, 400):
+        for x in (0.2, 2.0, 6.0, 25.0):
+            assert student_t_sf(x, dof) == pytest.approx(t.sf(x, dof), rel=1e-9)
+        for p in (0.3, 1e-4, 1e-9, 1e-40):
+            assert student_t_isf(p, dof) == pytest.approx(t.isf(p, dof), rel=1e-7)
+
+
+@pytest.mark.parametrize("n", [8, 40])
+def test_gross_threshold_meets_its_budget_by_monte_carlo(n):
+    """Learn from n healthy stretches, then count healthy windows above the gross threshold: over
+    many commissionings the rate per trial is the budget's share (Student t: estimated mean and
+    sd), where a normal quantile with the same estimates would exceed it."""
+    from scipy.stats import norm
+
+    feats = [Feature("gear_driven", 1)]
+    cfg = AlarmConfig(gross_false_alarms_per_month=2 * 30 * 86400 / 30.0 * 0.01)  # 1 % per window
+    rng = np.random.default_rng(n)
+    hits = normal_hits = total = 0
+    for _ in range(3000):
+        y = rng.standard_normal((n, 1))
+        st = EvidenceStats.fit(feats, list(y[:, None, :]), np.zeros((n, 2)) + rng.standard_normal((n, 2)),
+                               np.full(n, 80.0), 30.0, profile(), consecutive=False)
+        g = cfg.gross_thresholds(st)[0][0]
+        z = st.window_z(rng.standard_normal((50, 1)))[:, 0]
+        hits += int(np.sum(z >= g))
+        normal_hits += int(np.sum(z >= norm.isf(0.01)))
+        total += z.size
+    assert hits / total == pytest.approx(0.01, rel=0.12)
+    if n == 8:
+        assert normal_hits / total > 1.5 * 0.01
+
+
+def test_one_sessions_windows_count_once():
+    """Windows that share their stretch's level are one trial, not one per window: the effective
+    number of windows is the number of stretches, and the gross threshold is the one for n."""
+    feats = [Feature("gear_driven", 1)]
+    rng = np.random.default_rng(3)
+    levels = rng.standard_normal(40)
+    windows = [np.full((30, 1), lv) + 0.01 * rng.standard_normal((30, 1)) for lv in levels]
+    st = EvidenceStats.fit(feats, windows, rng.standard_normal((40, 2)), np.full(40, 80.0), 30.0, profile(), True)
+    assert st.window_n_eff[0] == pytest.approx(40, rel=0.05)
+    one = EvidenceStats.fit(feats, [w[:1] for w in windows], rng.standard_normal((40, 2)), np.full(40, 80.0),
+                            30.0, profile(), True)
+    assert AlarmConfig().gross_thresholds(st)[0][0] == pytest.approx(AlarmConfig().gross_thresholds(one)[0][0],
+                                                                     rel=0.01)
 
 
 def test_load_change_alone_does_not_move_the_cluster():
@@ -125,7 +175,7 @@ def test_load_change_alone_does_not_move_the_cluster():
 def test_evidence_statistic_is_capped():
     """One absurd stretch (an outlier, a glitch) adds at most z_cap - k: no alarm from one stretch."""
     st = _stats(40)
-    cfg = AlarmConfig(stretch_s=1.0, gross_z=1e6)
+    cfg = AlarmConfig(stretch_s=1.0, gross_false_alarms_per_month=1e-300)
     logic = AlarmLogic(cfg)
     v = logic.step(st, profile(), np.array([50.0]), st.cluster_mean, 80.0, 100.0, 30.0)  # one 30 s stretch
     assert v.stretch_closed and v.state == "normal"
@@ -248,6 +298,31 @@ def test_severe_wear_is_a_warning_within_one_window_plus_one_hop(commissioned):
     assert warn and warn[0][0] - onset <= BENCH_CFG.window_s + BENCH_CFG.hop_s + 1e-6
     assert warn[0][1].extra["reason"]["path"] == "gross"
     assert "gear_driven" in warn[0][1].extra["reason"]["families"]
+
+
+@pytest.fixture(scope="module")
+def commissioned_default(tmp_path_factory):
+    """The default commissioning (40 stretches of 30 s over 20 min) at one setpoint: what the gross
+    thresholds are designed for (fewer stretches widen them)."""
+    lib = ModelLibrary(tmp_path_factory.mktemp("alarms-default") / "library")
+    commission(profile(), lib, Plant(setpoints=(80.0,)), 80.0, seed=80)
+    return lib
+
+
+def test_no_lubricant_is_a_gross_warning_once_the_guard_releases(commissioned_default):
+    """A dry mesh: its spread over the driven gear's orders passes the gross threshold in one
+    window; its extra friction raises the load reading, which the settling guard holds first."""
+    onset, cfg = 40.0, PipelineConfig()
+    mon = DriveMonitor("d1", profile(), commissioned_default, cfg)
+    seen = []
+    stream(mon, Operation(Plant(setpoints=(80.0,)), 12, fault="gear_no_lubricant", fault_at_s=onset,
+                          changes=False), profile(), onset + 30.0, lambda t, st, seg: seen.append((t, st)))
+    assert not [t for t, st in seen if t < onset and st.state != "normal"]
+    warn = [(t, st) for t, st in seen if t >= onset and st.state == "warning"]
+    assert warn and warn[0][0] - onset <= cfg.alarm.settle_s + 2 * (cfg.window_s + cfg.hop_s) + 1e-6
+    reason = warn[0][1].extra["reason"]
+    assert reason["path"] == "gross" and "gear_driven" in reason["families"] and reason["z"] > reason["threshold"]
+    assert reason["threshold"] < 7.0  # the budget's threshold after a default commissioning, not a fixed 8
 
 
 def test_slight_wear_is_flagged_in_bounded_time(commissioned):

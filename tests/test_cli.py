@@ -69,6 +69,9 @@ def test_identify_and_diagnose_json(capsys, healthy, model, tmp_path):
     assert ident["operating_point"]["fe_hz"] == pytest.approx(100.0, rel=1e-3)
     assert 70 < ident["operating_point"]["load_pct"] < 95
     assert set(ident["params"]) >= {"d", "q", "physical"}
+    # few records are few independent stretches: the one-window threshold is wide, and says so
+    lo, hi = ident["alarm"]["gross_threshold_z"]
+    assert ident["alarm"]["stretches"] == len(healthy) and 8.0 < lo <= hi
     faulty = tmp_path / "f.csv"
     main(["simulate", "--profile", GEAR, "--condition", "gear_severe_wear", "--seconds", "1.2", "--seed", "77",
           "--out", str(faulty)])

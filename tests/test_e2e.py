@@ -42,7 +42,7 @@ import zenoh
 from agent.modelfile import save_baseline
 from firmware_if import plc_registers
 from protocols.zenoh_sink import zenoh_config
-from runtime_support import (PROFILE_PATH, RATE, ROOT, PlcPoller, Samples, condition_stream, free_port,
+from runtime_support import (PROFILE_PATH, RATE, RELAXED_GROSS, ROOT, PlcPoller, Samples, condition_stream, free_port,
                              healthy_baseline, sim, wait_for)
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
@@ -150,6 +150,7 @@ persist_hops = 2
 alarm_hold_s = 10.0
 stale_after_s = 3.0
 auto_learn = false
+gross_false_alarms_per_month = {RELAXED_GROSS}
 
 [modbus_server]
 host = "127.0.0.1"

@@ -11,7 +11,7 @@ import sys
 import pytest
 
 from agent.records import save_record
-from runtime_support import PROFILE_PATH, ROOT, sim
+from runtime_support import PROFILE_PATH, RELAXED_GROSS, ROOT, sim
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -30,7 +30,8 @@ from agent.playback import replay_source
 from agent.profile import load_profile
 profile = load_profile({str(PROFILE_PATH)!r})
 lib = ModelLibrary(tempfile.mkdtemp())
-cfg = PipelineConfig(learn_windows=6, learn_stretches=8, learn_min_s=0.0, alarm=AlarmConfig(stretch_s=4.0))
+alarm = AlarmConfig(stretch_s=4.0, gross_false_alarms_per_month={RELAXED_GROSS})
+cfg = PipelineConfig(learn_windows=6, learn_stretches=8, learn_min_s=0.0, alarm=alarm)
 mon = DriveMonitor("d1", profile, lib, cfg)
 mon.start_learning("b80")
 def play(paths):

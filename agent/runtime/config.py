@@ -170,7 +170,7 @@ class PipelineCfg:
     stretch_s: float = _opt(30.0, gt=0, le=3600)  #: s of operation per step of the slow-wear evidence
     settle_s: float = _opt(10.0, ge=0, le=3600)  #: s of held decision after an operating-point change
     false_alarms_per_month: float = _opt(0.1, gt=0, le=100)  #: design budget of the slow-wear path per drive
-    gross_z: float = _opt(8.0, gt=2, le=1000)  #: prediction sds above healthy for an immediate warning
+    gross_false_alarms_per_month: float = _opt(0.1, gt=0, le=100)  #: design budget of the gross path per drive
     auto_learn: bool = True  #: first commissioning: learn once when the drive has no baseline at all
     schedule_fe_tol_hz: float = _opt(2.0, gt=0, le=1000)  #: a baseline applies within this fe distance
     schedule_load_tol_pct: float = _opt(5.0, gt=0, le=100)  #: ... and this load distance (input power, % of rated)

@@ -109,7 +109,7 @@ def build_source(drive, rate_hz: float, span_s: float | None = None) -> Source:
 def pipeline_config(cfg: Config) -> PipelineConfig:
     p = cfg.pipeline
     alarm = AlarmConfig(stretch_s=p.stretch_s, settle_s=p.settle_s, false_alarms_per_month=p.false_alarms_per_month,
-                        gross_z=p.gross_z)
+                        gross_false_alarms_per_month=p.gross_false_alarms_per_month)
     return PipelineConfig(window_s=p.window_s, hop_s=p.hop_s, persist_hops=p.persist_hops,
                           alarm_hold_s=p.alarm_hold_s, stale_after_s=p.stale_after_s, learn_windows=p.learn_windows,
                           learn_stretches=p.learn_stretches, learn_min_s=p.learn_min_s, alarm=alarm)

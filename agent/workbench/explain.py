@@ -30,6 +30,7 @@ from agent.decision import operating_point_notes
 from agent.effects import EFFECTS
 from agent.effects import get as get_effect
 from agent.errors import InputError
+from agent.evidence import effective_size
 from agent.workbench.fitting import NONLINEAR, Prepared, Refit, fit_cost, heldout, refit
 
 ALPHA = 0.01  #: family-wise significance level of the test over records
@@ -146,27 +147,6 @@ def nested(ctrl: Refit, preps: list[Prepared], new: tuple, base: dict, prior: di
     for eid in new:
         out = _zero_effect(out, eid, r.at_bound.get(eid, False))
     return out
-
-
-def effective_size(d: list[np.ndarray]) -> tuple[float, float, float]:
-    """(mean, variance, effective sample size) of a block statistic given per record: the blocks of
-    one record are autocorrelated, the records independent. n_eff = N / (1 + 2 sum rho_k), rho_k
-    pooled over the records about the grand mean (so a record-to-record spread reads as
-    correlation), summed while positive (Geyer's initial positive sequence) and floored at the
-    number of records."""
-    n = sum(x.size for x in d)
-    mean = float(np.mean(np.concatenate(d)))
-    dev = [x - mean for x in d]
-    g0 = sum(float(x @ x) for x in dev) / n
-    if g0 <= 0:
-        return mean, 0.0, float(len(d))
-    s = 0.0
-    for k in range(1, max(x.size for x in d)):
-        rho = sum(float(x[k:] @ x[:-k]) for x in dev if x.size > k) / n / g0
-        if rho <= 0:
-            break
-        s += rho
-    return mean, g0, float(np.clip(n / (1.0 + 2.0 * s), len(d), n))
 
 
 def block_p(ctrl: dict, cand: dict) -> float:
