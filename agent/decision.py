@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from agent.baseline import Baseline, residual_spectra
-from agent.evidence import K_MAX, STATES, feature_values
+from agent.evidence import K_MAX, STATES, AlarmConfig, feature_values
 from agent.frequencies import fault_frequencies
 from agent.identify import cluster_point, operating_point, record_signals
 from agent.model import Signals
@@ -129,14 +129,17 @@ def assess(baseline: Baseline, sig: Signals, source: str = "") -> Diagnosis:
 
 def record_evidence(baseline: Baseline, freqs: np.ndarray, amp: np.ndarray, point, op: dict) -> dict:
     """The agent's alarm evidence of one record taken as one stretch: per feature (sideband pair)
-    the stretch z and the largest single-window z, the cluster z (docs/method.md, "Alarms")."""
+    the stretch z, the largest single-window z and the one-window threshold at the default gross
+    budget, the cluster z (docs/method.md, "Alarms")."""
     ev = baseline.evidence
     if ev is None:
         return {}
     y = feature_values(freqs, amp, baseline.profile, op["fe_hz"], ev.features, baseline.thresholds.search_bins)
     stretch, window = ev.stretch_z(y.mean(axis=0)), ev.window_z(y).max(axis=0)
-    out = {f.name: {"families": list(f.families), "stretch_z": round(float(a), 3), "window_z": round(float(b), 3)}
-           for f, a, b in zip(ev.features, stretch, window)}
+    gross, _ = AlarmConfig().gross_thresholds(ev)
+    out = {f.name: {"families": list(f.families), "stretch_z": round(float(a), 3), "window_z": round(float(b), 3),
+                    "gross_threshold": round(float(g), 3)}
+           for f, a, b, g in zip(ev.features, stretch, window, gross)}
     out["cluster"] = {"stretch_z": round(ev.cluster_z(point, op["load_pct"]), 3)}
     return out
 

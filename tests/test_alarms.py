@@ -366,6 +366,8 @@ def test_the_same_record_gives_the_same_evidence_offline_and_in_the_agent(tmp_pa
     np.testing.assert_allclose([ev[f.name]["window_z"] for f in base.evidence.features],
                                base.evidence.window_z(offline).max(axis=0), atol=1e-3)
     assert ev["gear_driven k=1"]["stretch_z"] > 1.0  # the slight wear shows in the driven gear's pair
+    gross, _ = AlarmConfig().gross_thresholds(base.evidence)
+    np.testing.assert_allclose([ev[f.name]["gross_threshold"] for f in base.evidence.features], gross, atol=1e-3)
 
 
 def test_stopped_drive_is_not_running_never_an_alarm(tmp_path):
