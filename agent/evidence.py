@@ -322,9 +322,14 @@ class EvidenceStats:
         feats = [Feature(f["family"], int(f["k"]), tuple((s[0], int(s[1])) for s in f["shared"]),
                          tuple(int(j) for j in f.get("members", ()))) for f in d["features"]]
         arr = lambda key: np.array(d[key], dtype=float)  # noqa: E731
+        n_eff = None if d.get("window_n_eff") is None else arr("window_n_eff")
+        if n_eff is not None and (n_eff.shape != (len(feats),) or not np.all(np.isfinite(n_eff) & (n_eff >= 1))):
+            raise ValueError("evidence.window_n_eff must hold one count >= 1 per feature")
+        if int(d["n"]) < 4 or not float(d["stretch_s"]) > 0:
+            raise ValueError("evidence needs n >= 4 stretches of stretch_s > 0 s")
         return cls(feats, arr("mean"), arr("sd"), arr("window_sd"), float(d["rho"]), int(d["n"]),
                    float(d["stretch_s"]), float(d["load_pct"]), float(d["b_gt_per_pct"]), arr("cluster_mean"),
-                   arr("cluster_cov"), None if d.get("window_n_eff") is None else arr("window_n_eff"))
+                   arr("cluster_cov"), n_eff)
 
 
 # --- the streaming decision ------------------------------------------------------------------------

@@ -157,3 +157,19 @@ def test_unknown_model_effect_is_input_error(small_baseline, tmp_path):
     bad.write_text(json.dumps(doc))
     with pytest.raises(InputError, match=str(bad)):
         load_baseline(bad)
+
+
+@pytest.mark.parametrize("n_eff", [[0.0], [float("nan")], "many"])
+def test_bad_alarm_evidence_in_a_model_file_is_input_error(small_baseline, tmp_path, n_eff):
+    """A model file whose independent-window counts are not counts is corrupt (exit 2 in the CLI,
+    quality no_model in the agent), never a division by zero on the first hop."""
+    import json
+
+    from agent.modelfile import baseline_to_json
+
+    doc = baseline_to_json(small_baseline)
+    doc["evidence"]["window_n_eff"] = n_eff
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match="corrupt model file"):
+        load_baseline(bad)
