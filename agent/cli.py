@@ -19,6 +19,7 @@ import numpy as np
 
 from agent.cliargs import Parser, fraction, number, quiet_broken_pipe
 from agent.errors import InputError
+from agent.evidence import FULL_EVIDENCE_STRETCHES, AlarmConfig
 
 log = logging.getLogger("pmsm-agent")
 
@@ -159,15 +160,14 @@ def cmd_identify(args) -> None:
         f"cluster centre: Ts/Lq {params['ts_over_lq']:.4e}, B_GT {params['b_gt']:.5f} N m s/rad\n"
         f"alarm evidence: {doc['alarm']['stretches']} independent stretches; one-window (gross) alarms above "
         f"window z {doc['alarm']['gross_threshold_z'][0]:.1f}-{doc['alarm']['gross_threshold_z'][1]:.1f}"
-        + ("" if doc["alarm"]["stretches"] >= 40 else
-           " (few stretches widen it: the agent's commissioning, 40 stretches of 30 s, gives about 6)")))
+        + ("" if doc["alarm"]["stretches"] >= FULL_EVIDENCE_STRETCHES else
+           f" (few stretches widen it: the agent's commissioning, {FULL_EVIDENCE_STRETCHES} stretches of 30 s, "
+           "gives about 6)")))
 
 
 def _alarm_evidence(base) -> dict:
     """The baseline's healthy evidence for the agent's alarms and its one-window threshold range
     at the default gross budget (docs/method.md, "Alarms")."""
-    from agent.evidence import AlarmConfig
-
     g, _ = AlarmConfig().gross_thresholds(base.evidence)
     return {"stretches": base.evidence.n, "gross_threshold_z": [round(float(g.min()), 2), round(float(g.max()), 2)]}
 

@@ -48,6 +48,8 @@ K_MAX = 3  #: sideband orders per family
 _NORMAL = NormalDist()
 MONTH_S = 30 * 86400.0
 STATES = ("normal", "caution", "warning")  #: codes 0 / 1 / 2
+#: stretches of healthy evidence the default commissioning learns: behind the promised false-alarm rate
+FULL_EVIDENCE_STRETCHES = 40
 
 
 # --- features ----------------------------------------------------------------------------------

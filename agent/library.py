@@ -16,6 +16,7 @@ from pathlib import Path
 
 from agent.baseline import Baseline
 from agent.errors import InputError
+from agent.evidence import FULL_EVIDENCE_STRETCHES
 from agent.modelfile import load_baseline, save_baseline
 
 log = logging.getLogger(__name__)
@@ -47,6 +48,8 @@ class ModelLibrary:
         for path in sorted(self.directory.glob("*.json")) if self.directory.is_dir() else []:
             try:
                 found[path.stem] = load_baseline(path)
+                if path.stem not in self.baselines:
+                    _note_thin_evidence(path.stem, found[path.stem])
             except InputError as err:
                 errors[path.stem] = str(err)
                 if path.stem in self.baselines:
@@ -56,6 +59,7 @@ class ModelLibrary:
 
     def add(self, name: str, baseline: Baseline) -> Path:
         """Write a new baseline atomically and make it schedulable."""
+        _note_thin_evidence(name, baseline)
         path = save_baseline(baseline, self.directory / f"{name}.json")
         self.baselines[name] = baseline
         return path
@@ -77,3 +81,13 @@ class ModelLibrary:
         if current in dist and dist[current] <= 1.0 and dist[current] <= dist[best] + self.schedule.hysteresis:
             return current
         return best
+
+
+def _note_thin_evidence(name: str, baseline: Baseline) -> None:
+    """A log line when a baseline holds less healthy evidence than the default commissioning: its
+    alarm thresholds are wider (docs/method.md, "Alarms"), so faults need to be larger."""
+    n = baseline.evidence.n if baseline.evidence is not None else 0
+    if n < FULL_EVIDENCE_STRETCHES:
+        log.warning("model library: %s holds %d stretches of healthy evidence (commissioning learns %d): its "
+                    "alarm thresholds are wider; `pmsm-agent learn` gives the promised false-alarm rate",
+                    name, n, FULL_EVIDENCE_STRETCHES)

@@ -42,7 +42,7 @@ import numpy as np
 
 from agent.baseline import SEARCH_BINS, BaselineBuilder, residual_spectra
 from agent.decision import STATES, decide
-from agent.evidence import AlarmConfig, AlarmLogic, feature_values, learning_shift
+from agent.evidence import FULL_EVIDENCE_STRETCHES, AlarmConfig, AlarmLogic, feature_values, learning_shift
 from agent.frames import CLARKE, abc_to_dq
 from agent.identify import cluster_point, fit_torque, operating_point
 from agent.sanity import not_running
@@ -74,7 +74,7 @@ class PipelineConfig:
     alarm_hold_s: float = 10.0  #: a raised level drops only after this long below it, s
     stale_after_s: float = 3.0  #: no input for this long -> quality "stale", s
     learn_windows: int = 30  #: spans to learn the baseline's parameters (pass 1)
-    learn_stretches: int = 40  #: independent stretches to learn the thresholds and alarm statistics (pass 2)
+    learn_stretches: int = FULL_EVIDENCE_STRETCHES  #: independent stretches to learn the thresholds and alarm statistics (pass 2)
     learn_min_s: float = 1200.0  #: s of operation pass 2 covers at least (cold to hot: thermal drift)
     max_current_a: float = float("inf")  #: |i| at or above this is saturation -> bad input
     max_voltage_v: float = float("inf")

@@ -367,3 +367,20 @@ def test_empty_and_odd_blocks_are_harmless(library):
     assert mon.process(Block("d1", RATE, np.zeros((3, 0)), np.zeros((3, 0)), 60_000)) == []
     out = feed(mon, [cut(rec, 60_000)], first=60_000)  # no gap was seen: the span fills on time
     assert [e for e, _ in out] == list(range(N_SPAN, rec.n + 1, N_HOP))
+
+
+def test_a_baseline_with_thin_evidence_is_named_in_the_log(tmp_path, caplog):
+    """12 records are 12 stretches, not the commissioning's 40: the library says its thresholds
+    are wider when it first loads the file, and not again on every reload."""
+    import logging
+
+    lib = ModelLibrary(tmp_path / "lib")
+    with caplog.at_level(logging.WARNING, logger="agent.library"):
+        lib.add("b80", healthy_baseline())
+        ModelLibrary(tmp_path / "lib")
+    thin = [r.getMessage() for r in caplog.records if "stretches of healthy evidence" in r.getMessage()]
+    assert len(thin) == 2 and all("b80 holds 12 stretches" in m for m in thin)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="agent.library"):
+        lib.reload()
+    assert not caplog.records
