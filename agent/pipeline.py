@@ -74,7 +74,7 @@ class PipelineConfig:
     alarm_hold_s: float = 10.0  #: a raised level drops only after this long below it, s
     stale_after_s: float = 3.0  #: no input for this long -> quality "stale", s
     learn_windows: int = 30  #: spans to learn the baseline's parameters (pass 1)
-    learn_stretches: int = FULL_EVIDENCE_STRETCHES  #: independent stretches to learn the thresholds and alarm statistics (pass 2)
+    learn_stretches: int = FULL_EVIDENCE_STRETCHES  #: stretches for the thresholds and alarm statistics (pass 2)
     learn_min_s: float = 1200.0  #: s of operation pass 2 covers at least (cold to hot: thermal drift)
     max_current_a: float = float("inf")  #: |i| at or above this is saturation -> bad input
     max_voltage_v: float = float("inf")

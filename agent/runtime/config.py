@@ -166,7 +166,7 @@ class PipelineCfg:
     alarm_hold_s: float = _opt(10.0, ge=0, le=86400)  #: a raised state is held this long before it may fall
     stale_after_s: float = _opt(3.0, gt=0, le=3600)  #: no input for this long -> quality "stale"
     learn_windows: int = _opt(30, ge=4, le=10000)  #: spans fitting a new baseline's parameters (pass 1)
-    learn_stretches: int = _opt(FULL_EVIDENCE_STRETCHES, ge=4, le=100000)  #: independent stretches of its alarm statistics (pass 2)
+    learn_stretches: int = _opt(FULL_EVIDENCE_STRETCHES, ge=4, le=100000)  #: stretches of its alarm statistics (pass 2)
     learn_min_s: float = _opt(1200.0, ge=0, le=30 * 86400)  #: s of operation pass 2 covers at least
     stretch_s: float = _opt(30.0, gt=0, le=3600)  #: s of operation per step of the slow-wear evidence
     settle_s: float = _opt(10.0, ge=0, le=3600)  #: s of held decision after an operating-point change

@@ -185,6 +185,10 @@ def _total(h: dict):
     return None if h["nrmse"] is None else h["nrmse"]["total"]
 
 
+def _dq(h: dict) -> dict | None:
+    return None if h["nrmse"] is None else {"d": h["nrmse"]["d"], "q": h["nrmse"]["q"]}
+
+
 def _claimable(row: dict) -> bool:
     return bool(row["identifiable"] and not row["at_bound"] and (row["explained_fraction"] or 0.0) >= MIN_EXPLAINED)
 
@@ -257,7 +261,7 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
         row = {"effect": eid, "nrmse_after": _total(h), "explained_fraction": _share(h_ctrl, h),
                "significant": False, "p_value": p_values[-1], "identifiable": identifiable, "at_bound": bound,
                "params": eff.report(r.values[eid], context(r, preps, baseline.profile)),
-               "nrmse_after_dq": None if h["nrmse"] is None else {"d": h["nrmse"]["d"], "q": h["nrmse"]["q"]},
+               "nrmse_after_dq": _dq(h),
                "identifiability": how}
         if not identifiable:
             why = ("the one-step regression pins it to no better than +-{:.0%} of a typical size".format(
@@ -273,13 +277,12 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
         rows.append(row)
     reject = holm(p_values, ALPHA)
     for row, rej in zip(rows, reject):
-        row["significant"] = bool(rej and row["identifiable"] and not row["at_bound"]
-                                  and (row["explained_fraction"] or 0.0) >= MIN_EXPLAINED)
+        row["significant"] = bool(rej and _claimable(row))
     _forward(rows, dict(zip(candidates, fits)), preps, base, prior)
     rows.sort(key=lambda r: (r["significant"], r["explained_fraction"] if r["explained_fraction"] is not None
                              else -np.inf), reverse=True)
     doc = {"nrmse_before": _total(before), "nrmse_control": _total(h_ctrl),
-           "nrmse_before_dq": None if before["nrmse"] is None else {"d": before["nrmse"]["d"], "q": before["nrmse"]["q"]},
+           "nrmse_before_dq": _dq(before),
            "candidates": rows, "control_params": ctrl.phys, "control_is_model": ctrl.model is model,
            "records": [p.source for p in preps], "warnings": operating_warnings(baseline, preps),
            "seconds": time.perf_counter() - t0}
