@@ -12,11 +12,13 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from agent.cli import main
+from agent.model import Signals
+from agent.physical import zero_sequence_sigma
 from agent.effects import EFFECTS
 from agent.records import Record, save_record
 from agent.simulator import simulate
 from agent.workbench import explain as ex
-from agent.workbench.fitting import fit_cost, heldout, prepare
+from agent.workbench.fitting import base_model, fit_cost, heldout, noise_floor, prepare
 from bench.workbench_evidence import GEAR
 from tests.test_workbench import assert_renders, base80, workflow  # noqa: F401 (fixtures)
 
@@ -107,9 +109,10 @@ def test_nested_refit_is_never_worse_than_its_parent(base80, effect, load, seed)
     preps = prepare(recs, GEAR)
     base = ex.drive_base(base80)
     ctrl = ex.control(base80.model, preps, base, prior=ex.physical_prior(base80))
-    assert ctrl.cost <= fit_cost(base80.model, preps) * (1 + 1e-9)
+    own = fit_cost(base80.model, preps)
+    assert ctrl.cost <= own + 1e-9 * abs(own)
     cand = ex.nested(ctrl, preps, (effect,), base)
-    assert cand.cost <= ctrl.cost * (1 + 1e-9)
+    assert cand.cost <= ctrl.cost + 1e-9 * abs(ctrl.cost)
     assert cand.effects == ctrl.effects + (effect,)
 
 
@@ -170,11 +173,24 @@ def test_holm_step_down():
 def test_block_p_uses_records_not_blocks():
     """A candidate that helps one record and hurts the others by the same amount per block is not
     significant, though its blocks, counted as independent, would be."""
-    ctrl = {"stable": True, "records": [np.ones(20)] * 4}
-    cand = {"stable": True, "records": [np.full(20, 0.2), np.full(20, 0.9), np.full(20, 0.95), np.full(20, 0.9)]}
+    quiet = [np.zeros(20)] * 4
+    ctrl = {"stable": True, "records": [np.ones(20)] * 4, "floor_records": quiet}
+    cand = {"stable": True, "records": [np.full(20, 0.2), np.full(20, 0.9), np.full(20, 0.95), np.full(20, 0.9)],
+            "floor_records": quiet}
     assert ex.block_p(ctrl, cand) > 0.05
     cand["records"] = [np.full(20, 0.5) + 0.01 * np.arange(20) % 0.03 for _ in range(4)]
     assert ex.block_p(ctrl, cand) < 1e-4
+
+
+def test_block_p_credits_no_model_for_responding_less_to_noise():
+    """A candidate whose held-out error is lower only by its smaller response to the voltage noise
+    (its noise floor lower by as much) explains nothing; one that removes error beyond that does."""
+    ctrl = {"stable": True, "records": [np.ones(20)] * 4, "floor_records": [np.full(20, 0.5)] * 4}
+    wobble = [np.full(20, 0.7) + 0.01 * (np.arange(20) % 3) for _ in range(4)]
+    sluggish = {"stable": True, "records": wobble, "floor_records": [w - 0.5 for w in wobble]}
+    assert ex.block_p(ctrl, sluggish) == 1.0
+    better = {"stable": True, "records": wobble, "floor_records": [np.full(20, 0.5)] * 4}
+    assert ex.block_p(ctrl, better) < 1e-4
 
 
 @pytest.mark.slow
@@ -243,3 +259,47 @@ def test_zoh2_matches_the_exact_hold_solution_where_euler_does_not(w_ts):
     euler_b = np.diag([m.theta_d[2], m.theta_q[2]])
     assert np.abs(zoh2_a - phi).max() < 0.1 * np.abs(euler_a - phi).max()
     assert np.abs(zoh2_b - gamma).max() < 0.1 * np.abs(euler_b - gamma).max()
+
+
+def _machine_model(meta: dict, fe_hz: float, l_scale: float = 1.0, effects: dict | None = None):
+    """The simulated machine's own dq model (its true R_s, L_d, L_q, psi_m), inductances scaled."""
+    phys = {"Rs_d": meta["R_s"], "Rs_q": meta["R_s"], "Ld": meta["L_d"] * l_scale, "Lq": meta["L_q"] * l_scale,
+            "Lq_x": meta["L_q"], "psi_m": meta["psi_m"]}
+    effects = effects or {}
+    return base_model("speed", GEAR.ts, fe_hz, phys, tuple(effects), {k: np.atleast_1d(v) for k, v in effects.items()})
+
+
+@pytest.mark.parametrize("effects", [{}, {"voltage_delay": 0.5}])
+def test_noise_floor_is_the_models_response_to_the_channels_noise(effects):
+    """noise_floor against Monte Carlo: extra white noise (1 V rms) on the phase voltages raises the
+    free run's mean squared deviation by the floor's voltage part per V^2, with a voltage effect
+    that reads the voltage (a delay's interpolation) as without."""
+    rec = simulate(GEAR, "healthy", 80.0, 1.0, seed=41, encoder=True)
+    prep = prepare([rec], GEAR)[0]
+    sig = prep.sig
+    model = _machine_model(rec.meta, rec.meta["fe_hz"], effects=effects)
+    rng = np.random.default_rng(5)
+    y0, added = model.simulate(sig), []
+    for _ in range(8):
+        noisy = Signals.from_abc(sig.v_abc + rng.normal(0.0, 1.0, sig.v_abc.shape), sig.i_abc, sig.theta_e,
+                                 sig.omega_e, sig.ts, sig.pole_pairs)
+        added.append(np.mean((model.simulate(noisy) - y0)[:, 5000:] ** 2, axis=1))
+    gain = noise_floor(model, prep) - 2.0 / 3.0 * zero_sequence_sigma(sig.i_abc) ** 2
+    gain /= zero_sequence_sigma(sig.v_abc) ** 2
+    np.testing.assert_allclose(gain, np.mean(added, axis=0), rtol=0.1)
+
+
+def test_a_model_of_the_machine_leaves_only_the_noise_floor():
+    """On records with the voltage channel's noise, the machine's own model and one with inductances
+    50 % too large have nearly the same raw held-out error (the larger L responds less to the noise);
+    beyond the noise floor the machine's model leaves almost nothing and the wrong one 4x more."""
+    recs = [simulate(GEAR, "healthy", 80.0, 1.0, seed=500 + j, encoder=True) for j in range(4)]
+    preps = prepare(recs, GEAR)
+    got = {}
+    for scale in (1.0, 1.5):
+        h = heldout(_machine_model(recs[0].meta, recs[0].meta["fe_hz"], scale), preps)
+        got[scale] = (h["nrmse"]["total"], np.hypot(h["nrmse"]["total"], h["noise_floor"]["total"]))
+    (true, true_raw), (wrong, wrong_raw) = got[1.0], got[1.5]
+    assert abs(wrong_raw / true_raw - 1.0) < 0.05
+    assert true < 0.25 * heldout(_machine_model(recs[0].meta, recs[0].meta["fe_hz"]), preps)["noise_floor"]["total"]
+    assert wrong > 4.0 * true

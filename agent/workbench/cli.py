@@ -68,6 +68,9 @@ def cmd_compare(args) -> None:
     lines = ([f"{doc['mode']} NRMSE (held-out): d {100 * n['d']:.3f} %, q {100 * n['q']:.3f} %, "
               f"total {100 * n['total']:.3f} %", "fit %: " + ", ".join(f"{k} {v:.1f}" for k, v in doc["fit_pct"].items())]
              if n else [doc["note"]])
+    if n and doc["noise_floor"]:
+        lines.append(f"noise floor (the channels' noise, left out of the free-run figure): total "
+                     f"{100 * doc['noise_floor']['total']:.3f} %")
     lines.append(f"records cover load {cov['load_pct_range'][0]:.0f}-{cov['load_pct_range'][1]:.0f} %, fe "
                  f"{cov['fe_hz_range'][0]:.1f}-{cov['fe_hz_range'][1]:.1f} Hz; the model's operating point: load "
                  f"{cov['model']['load_pct']:.0f} %, fe {cov['model']['fe_hz']:.1f} Hz")
@@ -94,9 +97,10 @@ def cmd_explain(args) -> None:
         cdoc, data = compare(base, preps)
         cdoc["warnings"] = doc["warnings"]
         doc["report"] = str(write_report(args.report, f"Effects missing from {args.model}", cdoc, data, doc))
-    lines = [f"NRMSE (held-out, free run): model {_pct(doc['nrmse_before'])}, control "
+    lines = [f"NRMSE (held-out, free run, beyond the noise floor): model {_pct(doc['nrmse_before'])}, control "
              f"{_pct(doc['nrmse_control'])}" + (" (the model itself)" if doc["control_is_model"] else
-                                               " (the model refitted without new effects)")]
+                                               " (the model refitted without new effects)")
+             + (f"; noise floor {_pct(doc['noise_floor'])}" if doc.get("noise_floor") is not None else "")]
     lines += [doc["note_before"]] if doc.get("note_before") else []
     for r in doc["candidates"]:
         mark = ("SIGNIFICANT" if r["significant"] else "not identifiable" if not r["identifiable"]

@@ -2,7 +2,8 @@
 
 The fit figure is the workbench's one error figure (:func:`agent.workbench.fitting.heldout`,
 docs/workbench.md "One error figure"): NRMSE on the held-out second part of each record, free run
-(or one-step with ``--one-step``), per axis (d, q), total and per phase, and fit % = 100 (1 - NRMSE);
+beyond the channels' noise floor (or raw one-step with ``--one-step``), per axis (d, q), total and
+per phase, and fit % = 100 (1 - NRMSE);
 the same model on the same records gives the same figure here, in ``explain``, ``add-effect``,
 ``history`` and the report. An unstable free run has no figure, only a note. With several models
 and operating points: a Table-5-like matrix. "Where": the phase-residual spectrum's largest peaks
@@ -29,9 +30,10 @@ ANGLE_BINS, CURRENT_BINS, TIME_BINS = 36, 24, 10
 
 
 def figures(model, preps: list[Prepared]) -> dict:
-    """{"free_run": {nrmse, fit_pct}, "one_step": {nrmse, fit_pct}, "stable", "note"?}: the one figure."""
+    """{"free_run": {nrmse, fit_pct, noise_floor}, "one_step": {nrmse, fit_pct}, "stable", "note"?}: the one
+    figure (the free run's beyond the channels' noise floor, which it also gives)."""
     h = heldout(model, preps)
-    out = {"free_run": {"nrmse": h["nrmse"], "fit_pct": fit_pct(h["nrmse"])},
+    out = {"free_run": {"nrmse": h["nrmse"], "fit_pct": fit_pct(h["nrmse"]), "noise_floor": h["noise_floor"]},
            "one_step": {"nrmse": h["one_step"], "fit_pct": fit_pct(h["one_step"])}, "stable": h["stable"]}
     if not h["stable"]:
         out["note"] = h["note"]
@@ -177,6 +179,7 @@ def compare(baseline, preps: list[Prepared], one_step: bool = False, others: dic
     with np.errstate(all="ignore"):
         found, data = where(baseline, preps, [np.nan_to_num(y, nan=0.0, posinf=0.0, neginf=0.0) for y in shown])
     doc = {"nrmse": figs[mode]["nrmse"], "fit_pct": figs[mode]["fit_pct"], "mode": mode,
+           "noise_floor": figs["free_run"]["noise_floor"],
            "modes": {k: figs[k] for k in ("free_run", "one_step")}, "stable": figs["stable"], "where": found,
            "table": table({"model": baseline, **(others or {})}, preps), "coverage": coverage(baseline, preps),
            "records": [p.source for p in preps]}

@@ -5,13 +5,14 @@ Fair comparison: every candidate is the *control* (the model's own structure ref
 fit segments, or the model itself where the refit is not better: this alone absorbs a change of
 load or temperature) plus one effect, and never worse than the control on the fit segments (a
 candidate refit that is, is the control with the effect at zero). The share it explains is
-``1 - SSE(candidate) / SSE(control)`` on the held-out segments (the one error figure,
-:func:`agent.workbench.fitting.heldout`).
+``(SSE(control) - SSE(candidate) - their noise floors' difference) / SSE(control)`` on the held-out
+segments (the one error figure, :func:`agent.workbench.fitting.heldout`): a model is not credited
+for responding less to the voltage channel's noise.
 
 Significance (docs/workbench.md, "Claims"): the held-out error of one record is dominated by slow
 components (a magnet-temperature or resistance mismatch is a constant over the record), so its
 ``BLOCK_S`` blocks are not independent samples; the records are. The test is a one-sided t-test of
-the per-block share explained, 1 - SSE_candidate / SSE_control, whose sample size is the *effective* one, from the
+the per-block share explained (as above, per block), whose sample size is the *effective* one, from the
 blocks' autocorrelation within records (:func:`effective_size`), never more than the blocks and
 never less than the records; Holm's step-down correction over the candidates keeps the
 family-wise level ``ALPHA``; a practical floor ``MIN_EXPLAINED`` applies. An effect the records
@@ -151,11 +152,13 @@ def nested(ctrl: Refit, preps: list[Prepared], new: tuple, base: dict, prior: di
 
 def block_p(ctrl: dict, cand: dict) -> float:
     """One-sided p-value that the candidate lowers the held-out error: a t-test of the per-block
-    share explained, 1 - SSE_candidate / SSE_control, with the effective sample size of :func:`effective_size`
+    share explained, (SSE_control - SSE_candidate - (floor_control - floor_candidate)) / SSE_control,
+    with the effective sample size of :func:`effective_size`
     (1 when fewer than ``MIN_RECORDS`` records or either free run is unstable)."""
     if not (ctrl["stable"] and cand["stable"]) or len(ctrl["records"]) < MIN_RECORDS:
         return 1.0
-    d = [1.0 - b / np.maximum(a, 1e-300) for a, b in zip(ctrl["records"], cand["records"])]
+    d = [(a - b - fa + fb) / np.maximum(a, 1e-300)
+         for a, b, fa, fb in zip(ctrl["records"], cand["records"], ctrl["floor_records"], cand["floor_records"])]
     mean, var, n_eff = effective_size(d)
     if mean <= 0:
         return 1.0
@@ -178,7 +181,8 @@ def holm(p_values: list[float], alpha: float) -> list[bool]:
 def _share(h_ctrl: dict, h: dict) -> float | None:
     if not (h_ctrl["stable"] and h["stable"]):
         return None
-    return 1.0 - float(np.sum(h["blocks"]) / max(np.sum(h_ctrl["blocks"]), 1e-300))
+    raw = float(np.sum(np.concatenate(h_ctrl["records"])))
+    return float(np.sum(h_ctrl["blocks"]) - np.sum(h["blocks"])) / max(raw, 1e-300)
 
 
 def _total(h: dict):
@@ -227,8 +231,8 @@ def _forward(rows: list[dict], fits: dict, preps: list[Prepared], base: dict, pr
 
 def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> dict:
     """Rank ``candidates`` (default: every library effect the model lacks). Returns the CONTRACT
-    document: ``nrmse_before`` (the model as it is), ``nrmse_control`` and ``candidates`` best first;
-    NRMSEs are None (with a ``note``) where a free run is unstable."""
+    document: ``nrmse_before`` (the model as it is), ``nrmse_control``, the control's ``noise_floor``
+    and ``candidates`` best first; NRMSEs are None (with a ``note``) where a free run is unstable."""
     t0 = time.perf_counter()
     model = baseline.model
     have = tuple(model.meta.get("effects", []))
@@ -282,6 +286,7 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
     rows.sort(key=lambda r: (r["significant"], r["explained_fraction"] if r["explained_fraction"] is not None
                              else -np.inf), reverse=True)
     doc = {"nrmse_before": _total(before), "nrmse_control": _total(h_ctrl),
+           "noise_floor": None if h_ctrl["noise_floor"] is None else h_ctrl["noise_floor"]["total"],
            "nrmse_before_dq": _dq(before),
            "candidates": rows, "control_params": ctrl.phys, "control_is_model": ctrl.model is model,
            "records": [p.source for p in preps], "warnings": operating_warnings(baseline, preps),

@@ -42,6 +42,7 @@ first ``SETTLE_S`` (the PLL's lock-in).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numba
 import numpy as np
@@ -55,7 +56,7 @@ from agent.identify import operating_point, record_signals
 from agent.sanity import not_running
 from agent.kernels import simulate_ltv
 from agent.physical import zero_sequence_sigma
-from agent.model import BASE_TERMS, DQModel, Signals, lumped_params, nrmse, regressors, zoh2_input, zoh2_matrices
+from agent.model import BASE_TERMS, DQModel, Signals, lumped_params, regressors, zoh2_input, zoh2_matrices
 from agent.profile import DriveProfile
 from agent.records import Record
 
@@ -92,6 +93,12 @@ class Prepared:
     @property
     def eval_slice(self) -> slice:
         return slice(self.split, self.sig.n)
+
+    @cached_property
+    def noise_var(self) -> tuple[float, float]:
+        """dq variances 2/3 sigma^2 of the voltage and current channels' white noise, sigma per phase
+        from the zero sequences (:func:`agent.physical.zero_sequence_sigma`)."""
+        return tuple(2.0 / 3.0 * zero_sequence_sigma(x) ** 2 for x in (self.sig.v_abc, self.sig.i_abc))
 
 
 def prepare(records: list[Record], profile: DriveProfile, max_fit_s: float = 0.5) -> list[Prepared]:
@@ -502,7 +509,6 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
         return bounded_lstsq(g, h, lower, upper), parts
 
     n_res = sum(2 * len(range(0, d[0].size, DECIMATE)) for d in data)
-
     def residual(z):
         alpha, parts = solve(z)
         if alpha is None:
@@ -577,16 +583,19 @@ UNSTABLE_GAIN = 10.0  #: a free run beyond this many times the record's largest 
 def heldout(model: DQModel, preps: list[Prepared], block_s: float = BLOCK_S) -> dict:
     """The workbench's one error figure (docs/workbench.md, "One error figure"): the free run of
     ``model`` over each whole record, its magnet flux set on the record's fit segment
-    (:func:`flux_adapted`), compared with the measurement on the held-out segments.
+    (:func:`flux_adapted`), compared with the measurement on the held-out segments, beyond the
+    noise floor no model removes (:func:`noise_floor`).
 
-    Returns ``nrmse`` ({d, q, total}, :func:`agent.model.nrmse`'s normalisation: every axis over
-    the RMS current-vector magnitude), ``fit_pct`` = 100 (1 - NRMSE) per axis, the per-record,
-    per-block sums of squared error (``records``: a list of arrays, for the significance test) and
-    ``stable``. A free run that diverges (beyond ``UNSTABLE_GAIN`` times the record's largest
-    current, or a state matrix with an eigenvalue outside the unit circle at the record's speed)
-    has no NRMSE: ``nrmse`` is None, ``unstable_after_s`` says when it left, and ``one_step`` (the
-    one-step NRMSE on the same segments) is what can still be said of the model."""
-    meas, pred, blocks, unstable, step, theta = [], [], [], [], [], []
+    Returns ``nrmse`` ({d, q, total, a, b, c}: sqrt(mean squared error - floor) over the RMS
+    current-vector magnitude, :func:`agent.model.nrmse`'s normalisation), ``noise_floor`` (the
+    floor on the same scale), ``fit_pct`` = 100 (1 - NRMSE) per axis, for the significance test
+    the per-record, per-block sums of squared error (``records``, raw) and of the floor
+    (``floor_records``), and ``stable``. A free run that diverges (beyond ``UNSTABLE_GAIN`` times
+    the record's largest current, or a state matrix with an eigenvalue outside the unit circle at
+    the record's speed) has no NRMSE: ``nrmse`` is None, ``unstable_after_s`` says when it left,
+    and ``one_step`` (the one-step NRMSE on the same segments, raw) is what can still be said."""
+    meas, pred, blocks, floor_blocks, unstable, step, theta = [], [], [], [], [], [], []
+    floor = np.zeros(2)
     for p in preps:
         with np.errstate(all="ignore"):
             y = flux_adapted(model, p)
@@ -597,6 +606,9 @@ def heldout(model: DQModel, preps: list[Prepared], block_s: float = BLOCK_S) -> 
         if bad.any() or radius >= 1.0:
             first = int(np.argmax(bad)) if bad.any() else p.sig.n - 1
             unstable.append((first * p.sig.ts, p.source))
+            f = np.zeros(2)
+        else:
+            f = noise_floor(model, p)
         ev = p.eval_slice
         meas.append(i[:, ev])
         pred.append(y[:, ev])
@@ -606,27 +618,39 @@ def heldout(model: DQModel, preps: list[Prepared], block_s: float = BLOCK_S) -> 
         e2 = np.sum((i[:, ev] - y[:, ev]) ** 2, axis=0)
         k = e2.size // nb
         blocks.append(e2[: k * nb].reshape(k, nb).sum(axis=1) if k else e2.sum(keepdims=True))
+        floor_blocks.append(np.full(blocks[-1].size, float(f.sum()) * (nb if k else e2.size)))
+        floor += f * e2.size
     meas, theta = np.hstack(meas), np.concatenate(theta)
     one = _with_phases(meas, np.hstack(step), theta)
-    out = {"stable": not unstable, "one_step": one, "records": blocks}
+    out = {"stable": not unstable, "one_step": one, "records": blocks, "floor_records": floor_blocks}
     if unstable:
         t, src = min(unstable)
-        out.update(nrmse=None, fit_pct=None, blocks=None, unstable_after_s=t,
+        out.update(nrmse=None, fit_pct=None, blocks=None, noise_floor=None, unstable_after_s=t,
                    note=f"free run unstable after {t:.3g} s ({src}); one-step NRMSE {100 * one['total']:.3g} %")
         return out
-    out["nrmse"] = _with_phases(meas, np.hstack(pred), theta)
+    floor /= meas.shape[1]
+    out["nrmse"] = _with_phases(meas, np.hstack(pred), theta, floor)
+    ref = np.sqrt(np.mean(np.sum(meas ** 2, axis=0)))
+    out["noise_floor"] = {"d": float(np.sqrt(floor[0]) / ref), "q": float(np.sqrt(floor[1]) / ref),
+                          "total": float(np.sqrt(floor.sum()) / ref)}
     out["fit_pct"] = fit_pct(out["nrmse"])
-    out["blocks"] = np.concatenate(blocks)
+    out["blocks"] = np.concatenate(blocks) - np.concatenate(floor_blocks)
     return out
 
 
-def _with_phases(meas: np.ndarray, pred: np.ndarray, theta: np.ndarray) -> dict:
-    """:func:`agent.model.nrmse` plus the phases a, b, c: each one's RMS error over the RMS phase
-    current (for balanced currents the same scale as ``total``)."""
-    out = nrmse(meas, pred)
-    ref = np.sqrt(np.mean(dq_to_abc(meas, theta) ** 2))
-    err = dq_to_abc(meas - pred, theta)
-    out.update(zip("abc", (np.sqrt(np.mean(err ** 2, axis=1)) / ref).tolist()))
+def _with_phases(meas: np.ndarray, pred: np.ndarray, theta: np.ndarray, floor: np.ndarray | None = None) -> dict:
+    """NRMSE of d, q and total (:func:`agent.model.nrmse`'s normalisation) and of the phases a, b, c
+    (each one's RMS error over the RMS phase current; for balanced currents the scale of ``total``),
+    beyond ``floor`` ((2,) mean squared d/q error per sample that the noise explains; a phase
+    carries half their sum); never below 0."""
+    f = np.zeros(2) if floor is None else np.asarray(floor, dtype=float)
+    err = meas - pred
+    ref = np.sqrt(np.mean(np.sum(meas ** 2, axis=0)))
+    mse = np.maximum(np.mean(err ** 2, axis=1) - f, 0.0)
+    out = {"d": float(np.sqrt(mse[0]) / ref), "q": float(np.sqrt(mse[1]) / ref), "total": float(np.sqrt(mse.sum()) / ref)}
+    ref_abc = np.sqrt(np.mean(dq_to_abc(meas, theta) ** 2))
+    mse_abc = np.maximum(np.mean(dq_to_abc(err, theta) ** 2, axis=1) - 0.5 * f.sum(), 0.0)
+    out.update(zip("abc", (np.sqrt(mse_abc) / ref_abc).tolist()))
     return out
 
 
@@ -637,12 +661,16 @@ def fit_pct(n: dict) -> dict:
 
 def fit_cost(model: DQModel, preps: list[Prepared]) -> float:
     """Sum of squared free-run errors of ``model`` on the fit segments (its magnet flux set per
-    record): the objective every refit minimises, to compare nested refits with their parent."""
+    record) less the channels' noise's expected share (:func:`noise_sse`): what every refit is
+    judged by, to compare nested refits with their parent. The refit's own search minimises the
+    raw error: subtracting an expectation there would reward a model for responding to noise that
+    its fitted parameters partly absorb (an in-sample optimism that grows with the model's time
+    constant); between fitted models it removes the reward for responding less."""
     total = 0.0
     for p in preps:
         with np.errstate(all="ignore"):
             e = p.sig.i_dq[:, p.fit_slice] - flux_adapted(model, p)[:, p.fit_slice]
-        total += float(np.sum(e ** 2))
+        total += float(np.sum(e ** 2)) - noise_sse(model, p, e.shape[1])
     return total if np.isfinite(total) else np.inf
 
 
@@ -660,3 +688,53 @@ def flux_adapted(model: DQModel, p: Prepared) -> np.ndarray:
     den = float(np.sum(r[:, f] ** 2))
     d_psi = float(np.sum(r[:, f] * (p.sig.i_dq[:, f] - y[:, f]))) / den if den > 0 else 0.0
     return y + d_psi * r
+
+
+IMPULSE_TAUS, IMPULSE_S = 8.0, 0.25  #: a model's impulse response is summed over 8 time constants, at most 0.25 s
+
+
+def _noise_lags(model: DQModel, p: Prepared) -> tuple[np.ndarray, float, float]:
+    """(E, var_v, var_i): E (2, M) the energy diag(H_m H_m^T) of the model's impulse response at lag
+    m = 0..M-1 to one dq voltage sample (its voltage effects included: a delay reads the next
+    sample) over its slowest time constants, and the channels' noise (:attr:`Prepared.noise_var`)."""
+    sig = p.sig
+    radius = model.spectral_radius(float(np.mean(sig.omega_e)))
+    tau = -sig.ts / np.log(radius) if 0.0 < radius < 1.0 else IMPULSE_S  # s, the slowest mode's
+    n = min(sig.n, max(int(min(IMPULSE_TAUS * tau, IMPULSE_S) / sig.ts), 8))
+    theta, omega = sig.theta_e[:n], sig.omega_e[:n]
+    mid = theta + 0.5 * omega * sig.ts  # the angle a voltage sample is rotated at (Signals.from_abc)
+    zero = np.zeros((3, n))
+
+    def run(v_dq):
+        s = Signals.from_abc(dq_to_abc(v_dq, mid), zero, theta, omega, sig.ts, sig.pole_pairs)
+        with np.errstate(all="ignore"):
+            return model.simulate(s, np.zeros(2))
+
+    quiet = run(np.zeros((2, n)))
+    energy = np.zeros((2, n - 1))
+    for axis in (0, 1):
+        pulse = np.zeros((2, n))
+        pulse[axis, 1] = 1.0  # at k = 1: an effect that reads v(k+1) sees it at k = 0
+        energy += (run(pulse) - quiet)[:, 1:] ** 2
+    return (energy, *p.noise_var)
+
+
+def noise_floor(model: DQModel, p: Prepared) -> np.ndarray:
+    """(2,) mean squared d/q current error per sample that no model of the machine removes
+    (docs/workbench.md, "One error figure"): the current channel's own white noise, 2/3 sigma_i^2,
+    plus the model's response to the voltage channel's white noise, which the machine never saw,
+    2/3 sigma_v^2 sum_m diag(H_m H_m^T) (:func:`_noise_lags`), in a free run long under way.
+
+    Without it a free run rewards sluggish models: a larger L or R responds less to the voltage
+    noise and scores better although it is further from the machine."""
+    energy, var_v, var_i = _noise_lags(model, p)
+    return var_v * energy.sum(axis=1) + var_i
+
+
+def noise_sse(model: DQModel, p: Prepared, n: int) -> float:
+    """Expected sum over the first ``n`` samples (d and q) of :func:`noise_floor`'s error, for a
+    free run that starts from the measured current (its response to the voltage noise builds up:
+    lag m counts n - m times)."""
+    energy, var_v, var_i = _noise_lags(model, p)
+    m = np.arange(min(energy.shape[1], n))
+    return float(var_v * np.sum(energy[:, m] * (n - m)) + 2 * n * var_i)
