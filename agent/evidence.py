@@ -346,7 +346,7 @@ class AlarmConfig:
     z_cap: float = 4.0  #: a stretch adds at most z_cap - k to a CUSUM (one outlier cannot trip it)
     false_alarms_per_month: float = 0.1  #: design budget of the slow path per drive (Siegmund ARL)
     gross_false_alarms_per_month: float = 0.1  #: design budget of the gross path per drive (:meth:`gross_thresholds`)
-    settle_s: float = 10.0  #: s of held decision after an operating-point change
+    settle_s: float = 3.0  #: s of held decision after the operating-point reading last moved (docs/method.md)
     settle_load_pct: float = 1.0  #: load change between hops (%-points) that starts settling
     settle_fe_hz: float = 0.2  #: fe change between hops (Hz) that starts settling
 

@@ -9,8 +9,9 @@ Nuisances (:class:`Plant`):
   the first hour and psi_m falls with the magnet temperature (``magnet_share`` of the winding's rise);
 * load wander within the tolerance band: an Ornstein-Uhlenbeck process (``wander_pct`` sd,
   ``wander_tau_s``), clipped at 2 sd;
-* operating-point changes: the load setpoint jumps between ``setpoints`` at ``changes_per_hour``
-  (Poisson);
+* operating-point changes: the load setpoint steps between ``setpoints`` at ``changes_per_hour``
+  (Poisson), inside a segment (the simulator's load step: the drive's speed loop answers it in the
+  stream, as in a plant);
 * healthy mesh ripple that differs from stretch to stretch: each segment of operation
   (``segment_s`` uniform) is a new simulator session with its own ripple amplitudes, load and
   temperature spread;
@@ -63,6 +64,7 @@ class Segment:
     condition: str
     t_winding_rise: float  #: K over ambient
     onset_s: float | None = None  #: fault onset within the segment, s (None: no onset in it)
+    step: tuple[float, float] | None = None  #: (s into the segment, load % after): a setpoint change in it
 
 
 class Operation:
@@ -85,11 +87,13 @@ class Operation:
         p, rng = self.plant, self.rng
         while self.t < seconds - 1e-9:
             dur = min(float(rng.uniform(*p.segment_s)), seconds - self.t)
-            if self.changes and len(p.setpoints) > 1 and rng.random() < p.changes_per_hour * dur / 3600.0:
-                self.setpoint = float(rng.choice([s for s in p.setpoints if s != self.setpoint]))
             a = math.exp(-dur / p.wander_tau_s)
             self.wander = a * self.wander + math.sqrt(1 - a * a) * p.wander_pct * float(rng.standard_normal())
-            load = self.setpoint + float(np.clip(self.wander, -2 * p.wander_pct, 2 * p.wander_pct))
+            wander = float(np.clip(self.wander, -2 * p.wander_pct, 2 * p.wander_pct))
+            load, step = self.setpoint + wander, None
+            if self.changes and len(p.setpoints) > 1 and rng.random() < p.changes_per_hour * dur / 3600.0:
+                self.setpoint = float(rng.choice([s for s in p.setpoints if s != self.setpoint]))
+                step = (float(rng.uniform(0.0, dur)), self.setpoint + wander)
             target = self.k_thermal * (load / 100.0) ** 2
             self.T_w = target + (self.T_w - target) * math.exp(-dur / p.thermal_tau_s)
             onset = None
@@ -98,7 +102,7 @@ class Operation:
                 cond = self.fault
                 if self.t <= self.fault_at:
                     onset = self.fault_at - self.t
-            yield Segment(self.count, self.t, dur, load, cond, self.T_w, onset)
+            yield Segment(self.count, self.t, dur, load, cond, self.T_w, onset, step)
             self.t += dur
             self.count += 1
 
@@ -109,10 +113,11 @@ class Operation:
         dT_m = self.plant.magnet_share * seg.t_winding_rise
         rig = dataclasses.replace(RigParams(), T_amb=RigParams().T_amb + dT_m,
                                   dT_w_rated=(seg.t_winding_rise - dT_m) / max(x * x, 1e-6), dT_m_rated=0.0)
+        kw = dict(seed=seed, rig=rig, load_step=seg.step)
         if seg.onset_s is None:
-            return simulate(profile, seg.condition, seg.load_pct, seg.seconds, seed=seed, rig=rig)
-        healthy = simulate(profile, "healthy", seg.load_pct, seg.seconds, seed=seed, rig=rig)
-        faulty = simulate(profile, seg.condition, seg.load_pct, seg.seconds, seed=seed, rig=rig)
+            return simulate(profile, seg.condition, seg.load_pct, seg.seconds, **kw)
+        healthy = simulate(profile, "healthy", seg.load_pct, seg.seconds, **kw)
+        faulty = simulate(profile, seg.condition, seg.load_pct, seg.seconds, **kw)
         k = int(round(seg.onset_s * profile.sampling.rate_hz))
         return dataclasses.replace(healthy, v_abc=np.concatenate([healthy.v_abc[:, :k], faulty.v_abc[:, k:]], 1),
                                    i_abc=np.concatenate([healthy.i_abc[:, :k], faulty.i_abc[:, k:]], 1))

@@ -119,7 +119,11 @@ def run_kind(kind: str, hours: float, reps: int, seed: int = 1, log=print) -> di
     onsets, z_rows, window_z, prev = [], [], [], {"state": "normal"}
     names: list[str] = []
 
+    steps = set()
+
     def watch(t, st, seg):
+        if seg.step is not None:
+            steps.add(seg.index)
         if st.quality != "good":
             return
         if st.state != "normal" and prev["state"] == "normal":
@@ -186,7 +190,8 @@ def run_kind(kind: str, hours: float, reps: int, seed: int = 1, log=print) -> di
         log(f"{kind}: {fault}: {detection[fault]}")
     return {"kind": kind, "hours": hours, "onsets": onsets, "onsets_per_day": len(onsets) / days,
             "onsets_per_day_upper95": poisson_upper(len(onsets), days),
-            "month_model": model, "window_excess": np.array(window_z), "threshold_h": h, "gross_thresholds": gross, "commissioning_s": commissioning,
+            "month_model": model, "window_excess": np.array(window_z), "threshold_h": h, "gross_thresholds": gross,
+            "commissioning_s": commissioning, "load_steps_in_stream": len(steps),
             "detection": detection,
             "cpu_s": round(time.process_time() - t0, 1),
             "realtime_x": round(hours * 3600 / cpu_healthy, 1)}
@@ -219,7 +224,7 @@ def main(argv=None) -> int:
               f"({r['onsets_per_day']:.2f}/drive-day, 95 % upper bound {r['onsets_per_day_upper95']:.2f}); "
               f"model: {m['cusum_per_month']:.2g} (upper {m['cusum_per_month_upper']:.2g}) slow-path and "
               f"{m['gross_per_month']:.2g} (upper {m['gross_per_month_upper']:.2g}) gross false alarms per month; "
-              f"{r['realtime_x']:g} x real time")
+              f"{r['load_steps_in_stream']} setpoint steps in the stream; {r['realtime_x']:g} x real time")
         for fault, d in r["detection"].items():
             print(f"  {fault}: caution after {d['caution_s']} s, warning after {d['warning_s']} s ({d['path']})")
     return 0

@@ -300,6 +300,23 @@ def test_severe_wear_is_a_warning_within_one_window_plus_one_hop(commissioned):
     assert "gear_driven" in warn[0][1].extra["reason"]["families"]
 
 
+def test_a_load_step_inside_the_stream_is_not_an_alarm(commissioned):
+    """The drive's load steps from one learned setpoint to the other inside the stream (the speed
+    loop answers it): the hops whose span holds the step are held (settling, then no_model between
+    the baselines), the new baseline takes over, and no state is raised."""
+    from agent.simulator import simulate
+
+    hi, lo = PLANT.setpoints
+    for before, after, seed in ((hi, lo, 3), (lo, hi, 4)):
+        rec = simulate(profile(), "healthy", before, 30.0, seed=seed, load_step=(15.0, after))
+        mon = DriveMonitor("d1", profile(), commissioned, BENCH_CFG)
+        seen = [st for b in blocks_of(rec, 2500) for st in mon.process(b)]
+        assert all(st.state == "normal" for st in seen), [(st.state, st.extra.get("reason")) for st in seen]
+        models = [st.model for st in seen if st.quality == "good"]
+        assert models[0] == f"d1_{before:.0f}pct" and models[-1] == f"d1_{after:.0f}pct"
+        assert any(st.extra.get("settling") for st in seen)
+
+
 @pytest.fixture(scope="module")
 def commissioned_default(tmp_path_factory):
     """The default commissioning (40 stretches of 30 s over 20 min) at one setpoint: what the gross

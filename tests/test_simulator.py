@@ -255,3 +255,25 @@ def test_bad_names_raise_input_error():
         simulate(GEAR, load_pct=-5.0, seconds=0.01)
     assert set(CONDITIONS) == {"healthy", "gear_slight_wear", "gear_severe_wear", "gear_no_lubricant",
                                "chain_offset", "chain_slight_wear", "chain_missing_tooth"}
+
+
+def test_load_step_within_a_record():
+    """A load step at t = 0.4 s: the record is the same as without it before the step, the speed
+    loop answers it (speed overshoot, back within 0.3 % in 0.3 s) and the torque-producing current
+    settles at the new load's, i_q = T / (1.5 p psi_m) within 2 %."""
+    kw = dict(condition="healthy", load_pct=80.0, seconds=1.0, seed=4, encoder=True)
+    plain = simulate(GEAR, **kw)
+    rec = simulate(GEAR, **kw, load_step=(0.4, 50.0))
+    k = int(0.4 / GEAR.ts)
+    np.testing.assert_array_equal(rec.i_abc[:, :k], plain.i_abc[:, :k])
+    i_dq, _ = abc_to_dq(rec.i_abc, rec.theta_e)
+    w_ref = rec.omega_e[:k].mean()
+    assert rec.omega_e[k:k + int(0.1 / GEAR.ts)].max() > 1.005 * w_ref
+    after = slice(int(0.7 / GEAR.ts), None)
+    assert abs(rec.omega_e[after].mean() / w_ref - 1.0) < 3e-3
+    m = rec.meta
+    t_after = m["T_load"] + (50.0 - 80.0) / 100.0 * GEAR.motor.rated_torque_nm + m["B_GT"] * m["omega_m"]
+    assert i_dq[1, after].mean() == pytest.approx(t_after / (1.5 * GEAR.motor.pole_pairs * m["psi_m"]), rel=0.02)
+    assert m["load_step_s"] == 0.4 and m["load_pct_after"] == 50.0
+    with pytest.raises(InputError, match="load_step"):
+        simulate(GEAR, **kw, load_step=(2.0, 50.0))

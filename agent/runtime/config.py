@@ -169,7 +169,7 @@ class PipelineCfg:
     learn_stretches: int = _opt(FULL_EVIDENCE_STRETCHES, ge=4, le=100000)  #: stretches of its alarm statistics (pass 2)
     learn_min_s: float = _opt(1200.0, ge=0, le=30 * 86400)  #: s of operation pass 2 covers at least
     stretch_s: float = _opt(30.0, gt=0, le=3600)  #: s of operation per step of the slow-wear evidence
-    settle_s: float = _opt(10.0, ge=0, le=3600)  #: s of held decision after an operating-point change
+    settle_s: float = _opt(3.0, ge=0, le=3600)  #: s of held decision after the operating-point reading last moved
     false_alarms_per_month: float = _opt(0.1, gt=0, le=100)  #: design budget of the slow-wear path per drive
     gross_false_alarms_per_month: float = _opt(0.1, gt=0, le=100)  #: design budget of the gross path per drive
     auto_learn: bool = True  #: first commissioning: learn once when the drive has no baseline at all

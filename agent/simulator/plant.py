@@ -18,6 +18,8 @@ Plant (rotor frame, flux state; reduces exactly to eq. 5 when psi_6 = 0 and a = 
     T_e = 1.5 n_p (psi_d i_q - psi_q i_d + i_d d psi_pm,d/d theta_e)
     J_1 d omega_1/dt = T_e - B_1 omega_1 - T_sh - T_dist,1,   T_sh = K_s (theta_1 - theta_2) + C_s (omega_1 - omega_2)
     J_2 d omega_2/dt = T_sh - B_2 omega_2 - T_L0 (1 + k_load (omega_2/omega_ref - 1)) - T_dist,2
+
+A load step adds ``DT_STEP`` (N m) to the driven side's torque from sample ``K_STEP`` on.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ from numba import njit
 # indices into the parameter vector ``par`` (see simulation.py for how each is set)
 (T_S, N_SUB, N_P, R_S, R_DRIFT, K_REC, L_D, L_Q0, PSI_M, PSI_6, SAT_A, PSI_QR,
  J_1, J_2, K_S, C_S, B_1, B_2, T_L0, K_LOAD, W_REF, U_DT, U_MAX,
- LD_HAT, LQ_HAT, PSIM_HAT, KP_D, KP_Q, KI_D, KI_Q, KP_W, KI_W, T_MAX, N_PAR) = range(34)
+ LD_HAT, LQ_HAT, PSIM_HAT, KP_D, KP_Q, KI_D, KI_Q, KP_W, KI_W, T_MAX, K_STEP, DT_STEP, N_PAR) = range(36)
 # derived entries (reciprocals: divisions dominate the RK stages), filled by ``derived(par)``
 (INV_LD, INV_LQ0, INV_PSIQR, INV_J1, INV_J2, TL_SLOPE, N_PAR_ALL) = range(N_PAR, N_PAR + 7)
 
@@ -175,6 +177,8 @@ def run(par, x0, c0, terms, noise_drive, i_ab, v_ab, vref_ab, theta_e, omega_e):
 
         # 3. plant over [t_k, t_k + T_s)
         T_1, T_2 = _dist(terms, th1, th2)
+        if k >= par[K_STEP]:  # a load step: the load torque changes by DT_STEP from sample K_STEP on
+            T_2 += par[DT_STEP]
         R_s = par[R_S]
         if par[R_DRIFT] != 0.0 and k > par[K_REC]:
             R_s *= 1.0 + par[R_DRIFT] * (k - par[K_REC]) * T_s

@@ -93,14 +93,16 @@ def _check_args(load_pct, seconds, severity, seed):
 
 def simulate(profile, condition: str = "healthy", load_pct: float = 80.0, seconds: float = 4.0,
              seed: int = 0, effects=None, encoder: bool = False, severity: float = 1.0,
-             rig: RigParams | None = None) -> Record:
+             rig: RigParams | None = None, load_step: tuple[float, float] | None = None) -> Record:
     """Simulate one steady-state record of the rig at the profile's rated speed.
 
     ``profile``: DriveProfile or path; ``condition``: a :data:`CONDITIONS` name valid for the
     profile's transmission; ``load_pct``: generator load, % of rated torque at the motor shaft;
     ``effects``: ``{id: magnitude or None (default)}`` or a list of ids (:data:`EFFECTS`);
     ``encoder``: also return the true electrical angle (rad, wrapped to [0, 2 pi)) and speed (rad/s);
-    ``severity`` scales the fault ripple and friction increase. Raises InputError on bad names/values.
+    ``severity`` scales the fault ripple and friction increase; ``load_step`` = (t_s, load_pct): the
+    load torque steps to ``load_pct`` at ``t_s`` s into the record (the drive's speed loop answers
+    it; temperatures stay). Raises InputError on bad names/values.
     """
     if isinstance(profile, (str, Path)):
         profile = load_profile(profile)
@@ -109,6 +111,11 @@ def simulate(profile, condition: str = "healthy", load_pct: float = 80.0, second
     cond = check_condition(condition, kind)
     eff = check_effects(effects)
     _check_args(load_pct, seconds, severity, seed)
+    if load_step is not None:
+        t_step, load_after = load_step
+        _check_args(load_after, seconds, severity, seed)
+        if not 0.0 <= t_step <= seconds:
+            raise InputError(f"load_step: the step time must be within the record (0..{seconds:g} s), got {t_step!r}")
     if 1.0 + eff.get("resistance_drift", 0.0) * seconds < 0.1:
         raise InputError("effect 'resistance_drift': R_s would fall below 10 % of its value in this record")
 
@@ -166,7 +173,9 @@ def simulate(profile, condition: str = "healthy", load_pct: float = 80.0, second
                      (P.U_DT, eff.get("inverter_deadtime", 0.0)), (P.U_MAX, rig.u_max),
                      (P.LD_HAT, rig.L_d), (P.LQ_HAT, rig.L_q), (P.PSIM_HAT, rig.psi_m),
                      (P.KP_D, a_i * rig.L_d), (P.KP_Q, a_i * rig.L_q), (P.KI_D, a_i * rig.R_s),
-                     (P.KI_Q, a_i * rig.R_s), (P.KP_W, kp_w), (P.KI_W, ki_w), (P.T_MAX, rig.T_max_rel * T_rated)):
+                     (P.KI_Q, a_i * rig.R_s), (P.KP_W, kp_w), (P.KI_W, ki_w), (P.T_MAX, rig.T_max_rel * T_rated),
+                     (P.K_STEP, math.inf if load_step is None else n_warm + round(load_step[0] / T_s)),
+                     (P.DT_STEP, 0.0 if load_step is None else (load_step[1] - load_pct) / 100.0 * T_rated)):
         par[idx] = val
     terms = _terms(profile, cond, severity, (amp_f, ph, phi0), eff.get("speed_ripple", 0.0))
 
@@ -190,6 +199,8 @@ def simulate(profile, condition: str = "healthy", load_pct: float = 80.0, second
 
     meta = _meta(profile, condition, load_pct, seconds, seed, severity, eff, rig, op, B_2, T_e0, iq0, psi_q0,
                  sat_a, psi_qr, w_ref)
+    if load_step is not None:
+        meta.update(load_step_s=float(load_step[0]), load_pct_after=float(load_step[1]))
     if "speed_ripple" in eff:  # omega_e ripple at f_gm: least-squares fit on the shaft angle
         th1 = theta[rec] / n_p + phi0[3]
         A = np.column_stack((np.ones(n_rec), np.sin(th1), np.cos(th1)))
