@@ -100,7 +100,7 @@ def cmd_explain(args) -> None:
     lines = [f"NRMSE (held-out, free run, beyond the noise floor): model {_pct(doc['nrmse_before'])}, control "
              f"{_pct(doc['nrmse_control'])}" + (" (the model itself)" if doc["control_is_model"] else
                                                " (the model refitted without new effects)")
-             + (f"; noise floor {_pct(doc['noise_floor'])}" if doc.get("noise_floor") is not None else "")]
+             + (f"; the control's noise floor {_pct(doc['noise_floor'])}" if doc.get("noise_floor") is not None else "")]
     lines += [doc["note_before"]] if doc.get("note_before") else []
     for r in doc["candidates"]:
         mark = ("SIGNIFICANT" if r["significant"] else "not identifiable" if not r["identifiable"]

@@ -149,6 +149,9 @@ def write_report(out_dir, title: str, doc: dict, data: dict, ranking: dict | Non
                  ["mode (held-out)", "NRMSE d %", "q %", "total %", "a %", "b %", "c %", "fit d %", "fit q %",
                   "fit total %", "fit a %", "fit b %", "fit c %"])
     fit += f"<p class='warn'>{html.escape(doc['note'])}</p>" if doc.get("note") else ""
+    if doc.get("noise_floor"):
+        fit += (f"<p>Free run: the error beyond the channels' noise floor ({100 * doc['noise_floor']['total']:.3f} % total, "
+                "which no model removes); the one-step figure is raw.</p>")
     models = list(doc["table"][0]["nrmse"]) if doc["table"] else []
     t5 = _table([[r["fe_hz"], r["load_pct"], r["records"], *(_pct(r["nrmse"][k]) for k in models)]
                  for r in doc["table"]], ["fe (Hz)", "load (%)", "records", *(f"{k}: NRMSE %" for k in models)])
