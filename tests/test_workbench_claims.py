@@ -18,7 +18,7 @@ from agent.effects import EFFECTS
 from agent.records import Record, save_record
 from agent.simulator import simulate
 from agent.workbench import explain as ex
-from agent.workbench.fitting import base_model, fit_cost, heldout, noise_floor, prepare
+from agent.workbench.fitting import base_model, fit_cost, heldout, noise_floor, noise_sse, prepare
 from bench.workbench_evidence import GEAR
 from tests.test_workbench import assert_renders, base80, workflow  # noqa: F401 (fixtures)
 
@@ -303,3 +303,25 @@ def test_a_model_of_the_machine_leaves_only_the_noise_floor():
     assert abs(wrong_raw / true_raw - 1.0) < 0.05
     assert true < 0.25 * heldout(_machine_model(recs[0].meta, recs[0].meta["fe_hz"]), preps)["noise_floor"]["total"]
     assert wrong > 4.0 * true
+
+
+def test_noise_sse_counts_the_free_runs_build_up():
+    """noise_sse against Monte Carlo: a free run from the measured current has no noise response at
+    its start; over its first 1000 samples (a few time constants) the expected voltage-noise sum is
+    well below 1000 floors, and matches the mean over draws."""
+    rec = simulate(GEAR, "healthy", 80.0, 0.5, seed=43, encoder=True)
+    prep = prepare([rec], GEAR)[0]
+    sig = prep.sig
+    model = _machine_model(rec.meta, rec.meta["fe_hz"])
+    var_i = 2.0 / 3.0 * zero_sequence_sigma(sig.i_abc) ** 2
+    n = 1000
+    expected = noise_sse(model, prep, n) - 2 * n * var_i
+    assert expected < 0.9 * n * float(np.sum(noise_floor(model, prep) - var_i))
+    rng = np.random.default_rng(8)
+    sv = zero_sequence_sigma(sig.v_abc)
+    y0, sums = model.simulate(sig), []
+    for _ in range(200):
+        noisy = Signals.from_abc(sig.v_abc + rng.normal(0.0, sv, sig.v_abc.shape), sig.i_abc, sig.theta_e,
+                                 sig.omega_e, sig.ts, sig.pole_pairs)
+        sums.append(np.sum((model.simulate(noisy) - y0)[:, :n] ** 2))
+    assert expected == pytest.approx(np.mean(sums), rel=0.12)  # 200 draws: about 2 sd
