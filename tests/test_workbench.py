@@ -291,6 +291,15 @@ def test_workflow_compare_explain_add_effect_history(capsys, workflow):
     hist = run_json(capsys, "model", "history", str(d / "m2.json"))
     assert [v["version"] for v in hist["versions"]] == [0, 1] and hist["effects"] == ["current_offset"]
     assert hist["versions"][1]["parent"] == model
+    assert hist["versions"][1]["nrmse_basis"] == "beyond_noise_floor"
+    # a version written before the figure left out the noise floor says its figures are raw
+    old = json.loads((d / "m2.json").read_text())
+    del old["history"][0]["nrmse_basis"]
+    (d / "m_old.json").write_text(json.dumps(old))
+    assert main(["model", "history", str(d / "m2.json")]) == 0
+    assert "raw figures" not in capsys.readouterr().out
+    assert main(["model", "history", str(d / "m_old.json")]) == 0
+    assert "raw figures: written before" in capsys.readouterr().out
     diag = run_json(capsys, "diagnose", "--model", str(d / "m2.json"), data[0])  # used everywhere a model is
     assert diag["results"][0]["state"] in ("normal", "caution", "warning")
     again = run_json(capsys, "model", "compare", "--model", str(d / "m2.json"), *data)

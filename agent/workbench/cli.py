@@ -15,6 +15,9 @@ from agent.errors import InputError
 log = logging.getLogger("pmsm-agent.model")
 
 
+#: what a history entry's NRMSE figures mean (entries without it hold the raw free-run figure)
+NRMSE_BASIS = "beyond_noise_floor"
+
 def _load(args, model_path):
     from agent.cli import _load_records
     from agent.modelfile import load_baseline
@@ -134,6 +137,7 @@ def cmd_add_effect(args) -> None:
     entry = {"version": len(base.history) + 1, "parent": str(args.model), "added": effects,
              "effects": list(ref.model.meta["effects"]), "nrmse_before": fig["nrmse_before"],
              "nrmse_control": fig["nrmse_control"], "nrmse_after": fig["nrmse_after"], "params": fig["params"],
+             "nrmse_basis": NRMSE_BASIS,
              "records": [r.source for r in recs], "timestamp": datetime.now(timezone.utc).isoformat(timespec="seconds")}
     new.history = list(base.history) + [entry]
     save_baseline(new, args.out)
@@ -160,7 +164,9 @@ def cmd_history(args) -> None:
     for v in versions:
         lines.append(f"  v{v['version']}: " + (v.get("note") or
                      f"+{'+'.join(v['added'])} from {v['parent']} at {v['timestamp']}: held-out NRMSE "
-                     f"{_pct(v['nrmse_before'])} -> {_pct(v['nrmse_after'])}"))
+                     f"{_pct(v['nrmse_before'])} -> {_pct(v['nrmse_after'])}"
+                     + ("" if v.get("nrmse_basis") == NRMSE_BASIS else " (raw figures: written before the "
+                                                                      "figure left out the noise floor)")))
     _emit(args, doc, "\n".join(lines))
 
 
