@@ -148,7 +148,7 @@ def cmd_add_effect(args) -> None:
            "th3_change": float((new.thresholds.th3.mean() / base.thresholds.th3.mean()) - 1)
            if new.thresholds.th3.size == base.thresholds.th3.size else None}
     _emit(args, doc, (f"wrote {args.out} (version {entry['version']}, effects {', '.join(entry['effects'])})\n"
-                      f"held-out free-run NRMSE: before {_pct(fig['nrmse_before'])}, control "
+                      f"held-out free-run NRMSE beyond the noise floor: before {_pct(fig['nrmse_before'])}, control "
                       f"{_pct(fig['nrmse_control'])}, with {'+'.join(effects)} {_pct(fig['nrmse_after'])}\n"
                       + "\n".join(f"  {e}: " + ", ".join(f"{k} {v:.4g}" for k, v in p.items())
                                   for e, p in fig["params"].items())))
