@@ -32,10 +32,11 @@ def columns(sig):
 
 
 def report(v, ctx):
-    # the measured line times the share of it the fit confirms; headline from d (L_q is known within
-    # 1-2 %, psi_m only together with R_s at one load)
+    # the measured line times the share of it the fit confirms; headline from d against L_qx, the
+    # inductance the d axis's cross term omega_e L_qx i_q carries (L_q in the rotor's frame; less in
+    # a frame that follows the current vector under MTPA); psi_m is known only together with R_s
     dw = float(np.mean([np.sqrt(2.0) * np.std(speed_error_line(s)) for s in ctx["signals"]]))
-    return {"omega_e_ripple_rad_s": dw * float(v[0]) / ctx["Lq"],
+    return {"omega_e_ripple_rad_s": dw * float(v[0]) / ctx["Lq_x"],
             "omega_e_ripple_from_q_rad_s": dw * float(v[1]) / ctx["psi_m"],
             "measured_speed_error_rad_s": dw}
 
@@ -47,7 +48,7 @@ EFFECT = Effect(
             "signal does not carry: it misses the back-EMF ripple psi_m delta omega_e on q (V) and "
             "L_q i_q delta omega_e on d.",
     kind="voltage",
-    params=(Param("L_w", "H", "L_q as the speed ripple's d-axis term sees it (= L_q when the ripple is real)", 0.03,
+    params=(Param("L_w", "H", "L_q as the speed ripple's d-axis term sees it (= L_qx when the ripple is real)", 0.03,
                   0.0, 2.0, "Lq"),
             Param("psi_w", "Wb", "psi_m as the speed ripple's q-axis term sees it (= psi_m)", 0.25, 0.0, 2.0, "psi_m")),
     columns=columns, report=report,
