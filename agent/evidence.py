@@ -146,7 +146,8 @@ def _beta_cf(a: float, b: float, x: float) -> float:
 
 
 def student_t_sf(t: float, dof: float) -> float:
-    """P(T > t) of Student's t with ``dof`` degrees of freedom, t >= 0 (incomplete beta)."""
+    """P(T > t) of Student's t with ``dof`` degrees of freedom, t >= 0 (incomplete beta). Here, not
+    scipy's: the agent's runtime path does not import scipy (docs/benchmarks.md, memory)."""
     x = dof / (dof + t * t)
     a, b = 0.5 * dof, 0.5
     log_front = math.lgamma(a + b) - math.lgamma(a) - math.lgamma(b) + a * math.log(x) + b * math.log1p(-x)
@@ -179,6 +180,8 @@ def cusum_arl(h: float, k: float, shift: float = 0.0) -> float:
     d, b = shift - k, h + 1.166
     if abs(d) < 1e-9:
         return b * b
+    if -2.0 * d * b > 700.0:  # beyond any horizon (and beyond a float's exp)
+        return math.inf
     return (math.exp(-2.0 * d * b) + 2.0 * d * b - 1.0) / (2.0 * d * d)
 
 

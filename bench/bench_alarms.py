@@ -116,7 +116,8 @@ def run_kind(kind: str, hours: float, reps: int, seed: int = 1, log=print) -> di
 
     # healthy operation
     mon = DriveMonitor("d1", profile, lib, cfg)
-    onsets, z_rows, window_z, prev = [], [], [], {"state": "normal"}
+    onsets, z_rows, window_excess, prev = [], [], [], {"state": "normal"}
+    gross_th = {}  #: baseline name -> its features' gross thresholds (they change only with the baseline)
     names: list[str] = []
 
     steps = set()
@@ -137,7 +138,9 @@ def run_kind(kind: str, hours: float, reps: int, seed: int = 1, log=print) -> di
             if not names:
                 names.extend(mon.alarms.last_z)
             z_rows.append([mon.alarms.last_z.get(n, np.nan) for n in names])
-        window_z.append(base.window_z(watch.window_y) - cfg.alarm.gross_thresholds(base)[0])
+        if st.model not in gross_th:
+            gross_th[st.model] = cfg.alarm.gross_thresholds(base)[0]
+        window_excess.append(base.window_z(watch.window_y) - gross_th[st.model])
 
     watch.last = None
     step = mon.alarms.step
@@ -159,7 +162,7 @@ def run_kind(kind: str, hours: float, reps: int, seed: int = 1, log=print) -> di
     h = cfg.alarm.threshold(len(names), max(cfg.alarm.stretch_s, 30.0))
     z = np.array(z_rows, dtype=float)
     model = month_model(z[~np.isnan(z).any(axis=1)], names, h, cfg.alarm.cusum_k, cfg.alarm.stretch_s,
-                        np.array(window_z))
+                        np.array(window_excess))
     gross = {name: np.round(np.append(*cfg.alarm.gross_thresholds(b.evidence)), 2).tolist()
              for name, b in lib.baselines.items()}
     days = hours / 24.0
@@ -190,7 +193,7 @@ def run_kind(kind: str, hours: float, reps: int, seed: int = 1, log=print) -> di
         log(f"{kind}: {fault}: {detection[fault]}")
     return {"kind": kind, "hours": hours, "onsets": onsets, "onsets_per_day": len(onsets) / days,
             "onsets_per_day_upper95": poisson_upper(len(onsets), days),
-            "month_model": model, "window_excess": np.array(window_z), "threshold_h": h, "gross_thresholds": gross,
+            "month_model": model, "window_excess": np.array(window_excess), "threshold_h": h, "gross_thresholds": gross,
             "commissioning_s": commissioning, "load_steps_in_stream": len(steps),
             "detection": detection,
             "cpu_s": round(time.process_time() - t0, 1),

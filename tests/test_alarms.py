@@ -427,3 +427,10 @@ def test_learning_refuses_data_with_a_fault_that_starts_while_learning(tmp_path)
     refused = [d["reason"] for k, d in events if k == "learning_refused"]
     assert refused and "changed during learning" in refused[0] and "gear_driven" in refused[0], refused
     assert not list((tmp_path / "lib2").glob("*.json"))
+
+
+def test_arl_beyond_a_floats_range_is_infinite():
+    """A statistic far below its reference (a tiny sd in a short benchmark run) has an ARL beyond
+    any horizon: infinity, not an overflow."""
+    assert cusum_arl(13.9, 0.5, -40.0) == math.inf
+    assert math.isfinite(cusum_arl(13.9, 0.5, -1.0)) and cusum_arl(13.9, 0.5, -1.0) > cusum_arl(13.9, 0.5)

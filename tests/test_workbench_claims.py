@@ -12,9 +12,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from agent.cli import main
+from agent.effects import EFFECTS
 from agent.model import Signals
 from agent.physical import zero_sequence_sigma
-from agent.effects import EFFECTS
 from agent.records import Record, save_record
 from agent.simulator import simulate
 from agent.workbench import explain as ex
@@ -261,29 +261,48 @@ def test_zoh2_matches_the_exact_hold_solution_where_euler_does_not(w_ts):
     assert np.abs(zoh2_b - gamma).max() < 0.1 * np.abs(euler_b - gamma).max()
 
 
-def _machine_model(meta: dict, fe_hz: float, l_scale: float = 1.0, effects: dict | None = None):
+def _machine_model(meta: dict, fe_hz: float, l_scale: float = 1.0, effects: dict | None = None, ts=GEAR.ts):
     """The simulated machine's own dq model (its true R_s, L_d, L_q, psi_m), inductances scaled."""
     phys = {"Rs_d": meta["R_s"], "Rs_q": meta["R_s"], "Ld": meta["L_d"] * l_scale, "Lq": meta["L_q"] * l_scale,
             "Lq_x": meta["L_q"], "psi_m": meta["psi_m"]}
     effects = effects or {}
-    return base_model("speed", GEAR.ts, fe_hz, phys, tuple(effects), {k: np.atleast_1d(v) for k, v in effects.items()})
+    return base_model("speed", ts, fe_hz, phys, tuple(effects), {k: np.atleast_1d(v) for k, v in effects.items()})
 
 
-@pytest.mark.parametrize("effects", [{}, {"voltage_delay": 0.5}])
-def test_noise_floor_is_the_models_response_to_the_channels_noise(effects):
-    """noise_floor against Monte Carlo: extra white noise (1 V rms) on the phase voltages raises the
-    free run's mean squared deviation by the floor's voltage part per V^2, with a voltage effect
-    that reads the voltage (a delay's interpolation) as without."""
-    rec = simulate(GEAR, "healthy", 80.0, 1.0, seed=41, encoder=True)
-    prep = prepare([rec], GEAR)[0]
+def _record_and_machine(sim: str, effects: dict):
+    """A healthy 1 s record with the encoder and the dq model of the machine that made it: the rig
+    simulator's, or motulator's (MTPA, 10 kHz, its own solver; cached in bench/results)."""
+    if sim == "rig":
+        rec = simulate(GEAR, "healthy", 80.0, 1.0, seed=41, encoder=True)
+        return rec, GEAR, _machine_model(rec.meta, rec.meta["fe_hz"], effects=effects)
+    pytest.importorskip("motulator")
+    from agent.profile import load_profile
+    from agent.records import load_record
+    from bench.thirdparty.motulator_drive import PROFILE, Run, cached
+
+    prof = load_profile(PROFILE)
+    path = cached(Run(load_pct=80.0, seconds=1.0, seed=0))
+    truth = json.loads(str(np.load(path)["truth"]))
+    rec = load_record(path, prof)
+    fe = float(np.mean(rec.omega_e)) / (2 * np.pi)
+    return rec, prof, _machine_model(truth, fe, effects=effects, ts=prof.ts)
+
+
+@pytest.mark.parametrize("sim,effects", [("rig", {}), ("rig", {"voltage_delay": 0.5}), ("motulator", {})])
+def test_noise_floor_is_the_models_response_to_the_channels_noise(sim, effects):
+    """noise_floor against Monte Carlo, on both simulators' records: extra white noise (1 V rms) on
+    the phase voltages raises the free run's mean squared deviation by the floor's voltage part per
+    V^2, with a voltage effect that reads the voltage (a delay's interpolation) as without."""
+    rec, prof, model = _record_and_machine(sim, effects)
+    prep = prepare([rec], prof)[0]
     sig = prep.sig
-    model = _machine_model(rec.meta, rec.meta["fe_hz"], effects=effects)
     rng = np.random.default_rng(5)
+    settled = int(0.2 / sig.ts)  # the noise response builds up over a few L/R
     y0, added = model.simulate(sig), []
     for _ in range(8):
         noisy = Signals.from_abc(sig.v_abc + rng.normal(0.0, 1.0, sig.v_abc.shape), sig.i_abc, sig.theta_e,
                                  sig.omega_e, sig.ts, sig.pole_pairs)
-        added.append(np.mean((model.simulate(noisy) - y0)[:, 5000:] ** 2, axis=1))
+        added.append(np.mean((model.simulate(noisy) - y0)[:, settled:] ** 2, axis=1))
     gain = noise_floor(model, prep) - 2.0 / 3.0 * zero_sequence_sigma(sig.i_abc) ** 2
     gain /= zero_sequence_sigma(sig.v_abc) ** 2
     np.testing.assert_allclose(gain, np.mean(added, axis=0), rtol=0.1)

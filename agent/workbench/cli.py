@@ -18,6 +18,7 @@ log = logging.getLogger("pmsm-agent.model")
 #: what a history entry's NRMSE figures mean (entries without it hold the raw free-run figure)
 NRMSE_BASIS = "beyond_noise_floor"
 
+
 def _load(args, model_path):
     from agent.cli import _load_records
     from agent.modelfile import load_baseline

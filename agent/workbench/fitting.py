@@ -509,6 +509,7 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
         return bounded_lstsq(g, h, lower, upper), parts
 
     n_res = sum(2 * len(range(0, d[0].size, DECIMATE)) for d in data)
+
     def residual(z):
         alpha, parts = solve(z)
         if alpha is None:
