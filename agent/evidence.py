@@ -426,6 +426,25 @@ class AlarmLogic:
         """Forget accumulated evidence (e.g. after maintenance or an acknowledged repair)."""
         self.__init__(self.config)
 
+    def _moved(self, a: tuple[float, float], b: tuple[float, float], hops: float = 1.0) -> bool:
+        """(fe Hz, load %) readings ``a`` and ``b`` differ by more than ``hops`` hops' settling rule."""
+        return (abs(a[0] - b[0]) > hops * self.config.settle_fe_hz
+                or abs(a[1] - b[1]) > hops * self.config.settle_load_pct)
+
+    def resume(self, span_op: tuple[float, float], first_hop_op: tuple[float, float],
+               last_hop_op: tuple[float, float], hops_per_span: int) -> None:
+        """The previous hop was not assessed (a gap in the stream, no baseline, bad input), so the span
+        reading has no predecessor: judge settling inside this span. A step moves the span reading by
+        its size over ``hops_per_span`` hops, so the span holds a transition when its first and last
+        hop's readings differ by more than ``hops_per_span`` times the per-hop rule. A stretch
+        continues only at the same operating point (``span_op`` against the last assessed one)."""
+        if self._last_op is not None and self._moved(self._last_op, span_op):
+            self._stretch = _Stretch()
+        self._last_op = span_op
+        if self._moved(first_hop_op, last_hop_op, hops_per_span):
+            self._settle_left = self.config.settle_s
+            self._stretch = _Stretch()
+
     def _tests(self, stats: EvidenceStats) -> tuple[list[str], float]:
         names = [f.name for f in stats.features] + ["cluster"]
         stretch_s = max(self.config.stretch_s, stats.stretch_s)
@@ -442,8 +461,7 @@ class AlarmLogic:
         operating point (``profile``: the drive's, for the lines' frequencies in the reason)."""
         cfg = self.config
         op = (fe_hz, load_pct)
-        if self._last_op is not None and (abs(op[0] - self._last_op[0]) > cfg.settle_fe_hz
-                                          or abs(op[1] - self._last_op[1]) > cfg.settle_load_pct):
+        if self._last_op is not None and self._moved(self._last_op, op):
             self._settle_left = cfg.settle_s
             self._stretch = _Stretch()  # a stretch never mixes operating points
         self._last_op = op

@@ -107,6 +107,7 @@ class DriveMonitor:
         # able to raise a level, and a segmented stream to drop it after alarm_hold_s
         self._recent: list[str] = []
         self._clock = 0  # samples since the monitor started (all streams): the hold's time base
+        self._assessed_at = -1  # _clock at the alarm logic's last step (consecutive hops or resume)
         self._builder: BaselineBuilder | None = None
         self._learn_name = ""
         self.alarms = AlarmLogic(config.alarm)
@@ -264,6 +265,11 @@ class DriveMonitor:
         point = np.array([self._ts_over_lq(name), fit_torque(sig, self.profile)[1]])
         freqs = base.thresholds.freqs_hz
         y = feature_values(freqs, np.array(spectra), self.profile, op["fe_hz"], base.evidence.features, SEARCH_BINS)
+        if self._assessed_at != self._clock - self.n_hop:  # the hop before was not assessed
+            ends = [operating_point(sig.slice(a, a + self.n_hop), self.profile) for a in (0, self.n_span - self.n_hop)]
+            self.alarms.resume((op["fe_hz"], op["load_pct"]), *[(e["fe_hz"], e["load_pct"]) for e in ends],
+                               self.n_span // self.n_hop)
+        self._assessed_at = self._clock
         v = self.alarms.step(base.evidence, self.profile, y[-1], point, op["load_pct"], op["fe_hz"],
                              self.config.hop_s)
         d = decide(base, freqs, np.array(spectra), point, op, self.drive)  # the paper's rule: peaks for display

@@ -123,9 +123,10 @@ class Operation:
                                    i_abc=np.concatenate([healthy.i_abc[:, :k], faulty.i_abc[:, k:]], 1))
 
 
-def stream(monitor: DriveMonitor, op: Operation, profile, seconds: float, on_status=None) -> int:
-    """Feed ``seconds`` of operation into ``monitor`` as blocks; ``on_status(t_s, status, segment)``
-    per hop (t_s: time since the start of operation at the hop's end). Returns hops seen."""
+def stream(monitor: DriveMonitor, op: Operation, profile, seconds: float, on_status=None, until=None) -> int:
+    """Feed operation up to ``seconds`` into ``monitor`` as blocks; ``on_status(t_s, status, segment)``
+    per hop (t_s: time since the start of operation at the hop's end); stop early once ``until()``
+    is true (checked per block). Returns hops seen."""
     rate = profile.sampling.rate_hz
     first, hops = 0, 0
     for seg in op.segments(seconds):
@@ -136,6 +137,8 @@ def stream(monitor: DriveMonitor, op: Operation, profile, seconds: float, on_sta
                 hops += 1
                 if on_status is not None:
                     on_status(seg.t0 + (start + BLOCK) / rate, status, seg)
+            if until is not None and until():
+                return hops
         first += rec.n + BLOCK  # a new stream: the next segment is a new session
     return hops
 

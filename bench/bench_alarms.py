@@ -184,8 +184,7 @@ def run_kind(kind: str, hours: float, reps: int, seed: int = 1, log=print) -> di
                         first.setdefault("caution", round(t - onset, 1))
                     first.setdefault("path", (st.extra.get("reason") or {}).get("path"))
             o = Operation(plant, seed * 7919 + rep, fault=fault, fault_at_s=onset)
-            while o.t < onset + MAX_FAULT_S and "warning" not in first:
-                stream(m, o, profile, o.t + 60.0, seen)
+            stream(m, o, profile, onset + MAX_FAULT_S, seen, until=lambda first=first: "warning" in first)
             delays.append(first)
         detection[fault] = {
             "caution_s": [d.get("caution") for d in delays], "warning_s": [d.get("warning") for d in delays],
