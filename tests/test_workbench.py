@@ -229,6 +229,32 @@ def test_speed_ripple_stays_in_the_agents_residual():
     assert amp(agent.slice(int(0.1 / GEAR.ts), agent.n)) < 0.15 * true  # after the PLL's lock-in
 
 
+@pytest.mark.parametrize("beta", [0.0, 0.4, -1.2])
+def test_speed_ripple_column_is_the_flux_times_the_speed_error_in_any_frame(beta):
+    """A frame that turns at omega_e + dw (dw at the shaft frequency) with the stator flux psi_s at
+    any angle beta in it (a rotor frame: 0; a current-vector frame under MTPA: not 0): the speed
+    column is -j dw psi_s, the angle column is in quadrature with it, and the reported ripple is
+    k_w times the measured line."""
+    from agent.effects.speed_ripple import EFFECT, speed_error_line
+    from agent.model import Signals
+
+    ts, w, p, amp, n = 4e-5, 2 * np.pi * 100.0, 4, 3.0, 25000
+    t = np.arange(n) * ts
+    dw = amp * np.cos(w * t / p + 0.3)
+    theta = w * t + amp * p / w * np.sin(w * t / p + 0.3)
+    psi = 0.3 * np.exp(1j * beta)
+    v = 1j * w * psi  # steady state, R_s i left out
+    sig = Signals(np.zeros((2, n)), np.vstack((np.full(n, v.real), np.full(n, v.imag))), theta, np.full(n, w), ts,
+                  pole_pairs=p)
+    speed, angle = EFFECT.columns(sig)
+    want = -1j * dw * psi
+    tol = 0.01 * np.abs(want).max()  # the shaft angle theta / p carries the ripple itself
+    assert np.allclose(speed[0], want.real, atol=tol) and np.allclose(speed[1], want.imag, atol=tol)
+    assert abs(np.sum(speed * angle)) < 1e-3 * np.sqrt(np.sum(speed ** 2) * np.sum(angle ** 2))
+    assert np.sqrt(2.0) * np.std(speed_error_line(sig)) == pytest.approx(amp, rel=0.01)
+    assert EFFECT.report(np.array([1.5, 0.0]), {"signals": [sig]})["omega_e_ripple_rad_s"] == pytest.approx(1.5 * amp, rel=0.01)
+
+
 def test_one_load_saturation_is_reported_not_identifiable(base80):
     recs = [simulate(GEAR, "healthy", 80.0, 1.0, seed=210 + j, effects={"magnetic_saturation": 0.15})
             for j in range(4)]

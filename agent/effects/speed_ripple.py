@@ -2,7 +2,19 @@
 
 import numpy as np
 
-from agent.effects.base import Effect, Param, smooth_current
+from agent.effects.base import Effect, Param
+
+
+def _lines(sig) -> tuple[np.ndarray, np.ndarray]:
+    """The shaft-frequency (f_r = fe/p) line of the speed error d theta_e/dt - omega_e (rad/s) and
+    of its integral, the frame's angle ripple (rad), (N,) each, by least squares over the signals."""
+    p = sig.pole_pairs or 1
+    th = sig.theta_e / p
+    err = np.gradient(sig.theta_e) / sig.ts - sig.omega_e
+    c, s = np.cos(th), np.sin(th)
+    a, b = np.linalg.lstsq(np.column_stack((c, s, np.ones_like(c))), err, rcond=None)[0][:2]
+    w_m = float(np.mean(sig.omega_e)) / p
+    return a * c + b * s, (a * s - b * c) / w_m if w_m else np.zeros_like(c)
 
 
 def speed_error_line(sig) -> np.ndarray:
@@ -15,29 +27,29 @@ def speed_error_line(sig) -> np.ndarray:
     themselves, since theta_e / p fixes the shaft angle only up to a multiple of 2 pi / p. In the
     PLL's own frame angle and speed agree up to the loop's proportional path (about a tenth of the
     ripple at 25 Hz with the 3 Hz loop), so the line nearly vanishes there."""
-    th = sig.theta_e / (sig.pole_pairs or 1)
-    err = np.gradient(sig.theta_e) / sig.ts - sig.omega_e
-    c, s = np.cos(th), np.sin(th)
-    a, b = np.linalg.lstsq(np.column_stack((c, s, np.ones_like(c))), err, rcond=None)[0][:2]
-    return a * c + b * s
+    return _lines(sig)[0]
 
 
 def columns(sig):
-    # the model uses omega_e where the rotor turns at omega_e + dw: it misses j dw psi, i.e.
-    # d: + dw L_q i_q (V per H), q: - dw psi_m (V per Wb)
-    dw = speed_error_line(sig)
-    iq = smooth_current(sig)[0][1]
-    zero = np.zeros_like(dw)
-    return np.stack((np.stack((iq * dw, zero)), np.stack((zero, -dw))))
+    # The model turns its flux at omega_e where the frame turns at omega_e + dw: it misses
+    # -j dw psi_s (V), whatever the frame. psi_s's direction in the frame is that of the mean
+    # voltage, psi_s ~ v_bar / (j omega_e) (the resistive drop R_s i, a few % of v at speed, left
+    # out), so the column is -(dw / omega_e) v_bar. A frame that follows the current vector also
+    # turns with the current's angle to the rotor (under MTPA it moves with i_q): the rotor's flux
+    # then turns by a share of the frame's angle ripple theta_w in it, omega_e theta_w psi_s,
+    # in quadrature with the first.
+    dw, theta_w = _lines(sig)
+    w = float(np.mean(sig.omega_e))
+    v_d, v_q = float(np.mean(sig.v_dq[0])), float(np.mean(sig.v_dq[1]))
+    speed = -np.stack((dw * v_d, dw * v_q)) / w if w else np.zeros((2, sig.n))
+    angle = np.stack((theta_w * v_q, -theta_w * v_d))
+    return np.stack((speed, angle))
 
 
 def report(v, ctx):
-    # the measured line times the share of it the fit confirms; headline from d against L_qx, the
-    # inductance the d axis's cross term omega_e L_qx i_q carries (L_q in the rotor's frame; less in
-    # a frame that follows the current vector under MTPA); psi_m is known only together with R_s
+    # the measured line times the share of it the fit confirms
     dw = float(np.mean([np.sqrt(2.0) * np.std(speed_error_line(s)) for s in ctx["signals"]]))
-    return {"omega_e_ripple_rad_s": dw * float(v[0]) / ctx["Lq_x"],
-            "omega_e_ripple_from_q_rad_s": dw * float(v[1]) / ctx["psi_m"],
+    return {"omega_e_ripple_rad_s": dw * float(v[0]), "frame_angle_share": float(v[1]),
             "measured_speed_error_rad_s": dw}
 
 
@@ -45,12 +57,13 @@ EFFECT = Effect(
     id="speed_ripple",
     physics="The rotor speed ripples at the shaft frequency f_r = fe/p (a coupling, load or unbalance "
             "torque once per revolution) by delta omega_e (rad/s), which the model's narrow-band speed "
-            "signal does not carry: it misses the back-EMF ripple psi_m delta omega_e on q (V) and "
-            "L_q i_q delta omega_e on d.",
+            "signal does not carry: it misses -j delta omega_e psi_s (V), the ripple times the stator "
+            "flux linkage, in any frame.",
     kind="voltage",
-    params=(Param("L_w", "H", "L_q as the speed ripple's d-axis term sees it (= L_qx when the ripple is real)", 0.03,
-                  0.0, 2.0, "Lq"),
-            Param("psi_w", "Wb", "psi_m as the speed ripple's q-axis term sees it (= psi_m)", 0.25, 0.0, 2.0, "psi_m")),
+    params=(Param("k_w", "-", "the rotor's speed ripple as a multiple of the speed error the records' angle "
+                  "shows (1: the angle follows the rotor)", 1.0, 0.0, 3.0),
+            Param("k_theta", "-", "share of the frame's angle ripple by which the rotor's flux turns in it "
+                  "(0 when the frame follows the rotor; a current-vector frame under MTPA)", 0.1, -1.0, 1.0)),
     columns=columns, report=report,
     signature="f_r = fe/p in dq (fe +- f_r in the phase residual, the driving-gear line k = 1), in "
               "phase with the ripple of the angle's rotation",
