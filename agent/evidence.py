@@ -415,7 +415,9 @@ class AlarmLogic:
         self.s_warning: dict[str, float] = {}
         self._stretch = _Stretch()
         self._settle_left = 0.0
-        self._last_op: tuple[float, float] | None = None
+        self._last_op: tuple[float, float] | None = None  #: the hop before's reading (None: a stream's first)
+        self._stretch_op: tuple[float, float] | None = None  #: the reading last added to a stretch
+        self._settling = False
         self._last: Verdict = Verdict("normal", "normal", "normal", {})
         self.last_z: dict[str, float] = {}  #: the last stretch's z per test (diagnostics, benchmark)
         self._cluster_gross: dict | None = None
@@ -431,19 +433,36 @@ class AlarmLogic:
         return (abs(a[0] - b[0]) > hops * self.config.settle_fe_hz
                 or abs(a[1] - b[1]) > hops * self.config.settle_load_pct)
 
-    def resume(self, span_op: tuple[float, float], first_hop_op: tuple[float, float],
-               last_hop_op: tuple[float, float], hops_per_span: int) -> None:
-        """The previous hop was not assessed (a gap in the stream, no baseline, bad input), so the span
-        reading has no predecessor: judge settling inside this span. A step moves the span reading by
-        its size over ``hops_per_span`` hops, so the span holds a transition when its first and last
-        hop's readings differ by more than ``hops_per_span`` times the per-hop rule. A stretch
-        continues only at the same operating point (``span_op`` against the last assessed one)."""
-        if self._last_op is not None and self._moved(self._last_op, span_op):
-            self._stretch = _Stretch()
-        self._last_op = span_op
-        if self._moved(first_hop_op, last_hop_op, hops_per_span):
+    @property
+    def fresh(self) -> bool:
+        """No reading since the stream (re)started."""
+        return self._last_op is None
+
+    def new_stream(self) -> None:
+        """A gap in the stream: the next reading has no predecessor (see :meth:`observe`)."""
+        self._last_op = None
+
+    def observe(self, op: tuple[float, float], hop_s: float, span_ends=None) -> bool:
+        """Every hop's operating-point reading ``op`` (fe Hz, load %), assessed or not (no baseline,
+        idle, learning): settling starts when it moved since the hop before, and the hold counts
+        down. On a stream's first hop there is no hop before: ``span_ends`` = (first hop's reading,
+        last hop's reading, hops per span) judges a step inside the span, whose size a step in the
+        stream spreads over the span's hops; a stretch continues across the gap only at the same
+        operating point. True while settling; :meth:`step` holds its decision then."""
+        if self._last_op is not None:
+            moved = self._moved(self._last_op, op)
+        else:
+            moved = span_ends is not None and self._moved(span_ends[0], span_ends[1], span_ends[2])
+            if self._stretch_op is not None and self._moved(self._stretch_op, op):
+                self._stretch = _Stretch()
+        if moved:
             self._settle_left = self.config.settle_s
-            self._stretch = _Stretch()
+            self._stretch = _Stretch()  # a stretch never mixes operating points
+        self._last_op = op
+        self._settling = self._settle_left > 0
+        if self._settling:
+            self._settle_left -= hop_s
+        return self._settling
 
     def _tests(self, stats: EvidenceStats) -> tuple[list[str], float]:
         names = [f.name for f in stats.features] + ["cluster"]
@@ -457,16 +476,11 @@ class AlarmLogic:
 
     def step(self, stats: EvidenceStats, profile, window_y: np.ndarray, cluster_point, load_pct: float,
              fe_hz: float, hop_s: float) -> Verdict:
-        """One hop: ``window_y`` (F,) the newest window's feature values, the span's cluster point and
-        operating point (``profile``: the drive's, for the lines' frequencies in the reason)."""
+        """One assessed hop, after :meth:`observe` saw its reading: ``window_y`` (F,) the newest
+        window's feature values, the span's cluster point and operating point (``profile``: the
+        drive's, for the lines' frequencies in the reason)."""
         cfg = self.config
-        op = (fe_hz, load_pct)
-        if self._last_op is not None and self._moved(self._last_op, op):
-            self._settle_left = cfg.settle_s
-            self._stretch = _Stretch()  # a stretch never mixes operating points
-        self._last_op = op
-        if self._settle_left > 0:
-            self._settle_left -= hop_s
+        if self._settling:
             return Verdict(self._last.state, self._last.spectrum_state, self._last.cluster_state,
                            self._last.evidence, self._last.reason, settling=True)
         names, h = self._tests(stats)
@@ -486,6 +500,7 @@ class AlarmLogic:
         # slow path: a CUSUM step per completed stretch
         st = self._stretch
         st.add(window_y, cluster_point, load_pct, hop_s)
+        self._stretch_op = (fe_hz, load_pct)
         closed = st.seconds >= stretch_s - 1e-9
         if closed:
             z = np.append(stats.stretch_z(st.y / st.hops), stats.cluster_z(st.cluster / st.hops, st.load / st.hops))

@@ -107,7 +107,6 @@ class DriveMonitor:
         # able to raise a level, and a segmented stream to drop it after alarm_hold_s
         self._recent: list[str] = []
         self._clock = 0  # samples since the monitor started (all streams): the hold's time base
-        self._assessed_at = -1  # _clock at the alarm logic's last step (consecutive hops or resume)
         self._builder: BaselineBuilder | None = None
         self._learn_name = ""
         self.alarms = AlarmLogic(config.alarm)
@@ -129,6 +128,7 @@ class DriveMonitor:
         self._q_info: dict[int, tuple] = {}  # hop end sample -> (model, q-axis X^T X, X^T y)
         self.pll.reset()
         self.last_input = time.monotonic()
+        self.alarms.new_stream()
 
     def process(self, block: Block) -> list[DriveStatus]:
         """Append a block; every ``hop_s`` of new samples assess the last span."""
@@ -241,6 +241,7 @@ class DriveMonitor:
         if sig is None:
             return self._set(quality="bad_input", reason="NaN or saturated samples in the span")
         op = operating_point(sig, self.profile)
+        self.alarms.observe((op["fe_hz"], op["load_pct"]), self.config.hop_s, self._span_ends(sig))
         idle = not_running(sig, self.profile)
         if idle is not None:
             return self._set(quality="no_model", model="", state="normal", spectrum_state="normal",
@@ -265,11 +266,6 @@ class DriveMonitor:
         point = np.array([self._ts_over_lq(name), fit_torque(sig, self.profile)[1]])
         freqs = base.thresholds.freqs_hz
         y = feature_values(freqs, np.array(spectra), self.profile, op["fe_hz"], base.evidence.features, SEARCH_BINS)
-        if self._assessed_at != self._clock - self.n_hop:  # the hop before was not assessed
-            ends = [operating_point(sig.slice(a, a + self.n_hop), self.profile) for a in (0, self.n_span - self.n_hop)]
-            self.alarms.resume((op["fe_hz"], op["load_pct"]), *[(e["fe_hz"], e["load_pct"]) for e in ends],
-                               self.n_span // self.n_hop)
-        self._assessed_at = self._clock
         v = self.alarms.step(base.evidence, self.profile, y[-1], point, op["load_pct"], op["fe_hz"],
                              self.config.hop_s)
         d = decide(base, freqs, np.array(spectra), point, op, self.drive)  # the paper's rule: peaks for display
@@ -277,6 +273,14 @@ class DriveMonitor:
                          cluster_state=v.cluster_state, fe_hz=op["fe_hz"], load_pct=op["load_pct"],
                          peaks=d.peaks, cluster_distance2=d.cluster["distance2"], reason=v.reason,
                          evidence=v.evidence, settling=v.settling)
+
+    def _span_ends(self, sig: Signals):
+        """On a stream's first hop, the readings of the span's first and last hop and the hops per
+        span (:meth:`AlarmLogic.observe`); None after that."""
+        if not self.alarms.fresh:
+            return None
+        ends = [operating_point(sig.slice(a, a + self.n_hop), self.profile) for a in (0, self.n_span - self.n_hop)]
+        return (ends[0]["fe_hz"], ends[0]["load_pct"]), (ends[1]["fe_hz"], ends[1]["load_pct"]), self.n_span // self.n_hop
 
     def last_spectrum(self) -> tuple[str, np.ndarray, np.ndarray] | None:
         """(model, freqs_hz, amplitude) of the newest window's residual spectrum, for queries."""

@@ -129,6 +129,7 @@ def run_kind(kind: str, hours: float, reps: int, seed: int = 1, log=print) -> di
             return
         if st.state != "normal" and prev["state"] == "normal":
             onsets.append({"t_s": round(t, 1), "state": st.state, "reason": st.extra.get("reason")})
+            log(f"{kind}: onset at {t:.1f} s: {onsets[-1]}")
         prev["state"] = st.state
         base = lib.baselines[st.model].evidence
         if st.extra.get("settling"):

@@ -188,17 +188,37 @@ def test_evidence_statistic_is_capped():
     assert v.state == "caution" and v.reason["path"] == "cusum" and v.reason["feature"] == "gear_driven k=1"
 
 
+def _hop(logic, st, y, load, span_ends=None, fe=100.0, hop_s=1.0):
+    """One assessed hop as the pipeline runs it: the guard sees the reading, then the decision."""
+    logic.observe((fe, load), hop_s, span_ends)
+    return logic.step(st, profile(), np.array([y]), st.cluster_mean, load, fe, hop_s)
+
+
 def test_settling_guard_holds_the_decision_after_a_step():
     st = _stats(40)
-    cfg = AlarmConfig(stretch_s=1.0, settle_s=5.0)
-    logic = AlarmLogic(cfg)
-    logic.step(st, profile(), np.array([0.0]), st.cluster_mean, 80.0, 100.0, 1.0)
+    logic = AlarmLogic(AlarmConfig(stretch_s=1.0, settle_s=5.0))
+    _hop(logic, st, 0.0, 80.0)
     # a load step of 10 %-points, and during the transient a huge line (the drive re-settling)
-    held = [logic.step(st, profile(), np.array([5.0]), st.cluster_mean, 90.0, 100.0, 1.0) for _ in range(5)]
+    held = [_hop(logic, st, 5.0, 90.0) for _ in range(5)]
     assert all(v.settling and v.state == "normal" for v in held)
     assert logic.s_caution.get("gear_driven k=1", 0.0) == 0.0  # no evidence accumulated while settling
-    after = logic.step(st, profile(), np.array([0.0]), st.cluster_mean, 90.0, 100.0, 1.0)
-    assert not after.settling
+    assert not _hop(logic, st, 0.0, 90.0).settling
+
+
+def test_hops_the_alarm_logic_does_not_assess_still_move_the_guard():
+    """Between two baselines the reading is no_model: the guard still sees it, so the first hop on
+    the new baseline is held while the reading still moves, and not once it has stopped."""
+    st = _stats(40)
+    logic = AlarmLogic(AlarmConfig(stretch_s=1.0, settle_s=2.0))
+    _hop(logic, st, 0.0, 80.0)
+    for load in (75.0, 70.0, 66.0):  # no baseline here: observed, not assessed
+        logic.observe((100.0, load), 1.0)
+    assert _hop(logic, st, 5.0, 64.0).settling  # still moving
+    logic = AlarmLogic(AlarmConfig(stretch_s=1.0, settle_s=2.0))
+    _hop(logic, st, 0.0, 80.0)
+    for load in (75.0, 70.0, 64.0, 64.0, 64.0, 64.0):  # steady long enough while unassessed
+        logic.observe((100.0, load), 1.0)
+    assert not _hop(logic, st, 0.0, 64.0).settling
 
 
 def test_after_a_gap_settling_is_judged_within_the_new_span():
@@ -206,23 +226,22 @@ def test_after_a_gap_settling_is_judged_within_the_new_span():
     first span is held only if the reading moves inside it as much as a held step would, and no
     stretch mixes the two loads."""
     st = _stats(40)
-    cfg = AlarmConfig(stretch_s=2.0, settle_s=3.0)
-    logic = AlarmLogic(cfg)
-    logic.step(st, profile(), np.array([0.0]), st.cluster_mean, 80.0, 100.0, 1.0)
+    logic = AlarmLogic(AlarmConfig(stretch_s=2.0, settle_s=3.0))
+    _hop(logic, st, 0.0, 80.0)
     assert logic._stretch.hops == 1
-    logic.resume((100.0, 84.0), (100.0, 84.1), (100.0, 83.9), 4)  # steady at 84 % within the new span
-    assert logic._stretch.hops == 0  # the stretch at 80 % ended
-    v = logic.step(st, profile(), np.array([0.0]), st.cluster_mean, 84.0, 100.0, 1.0)
-    assert not v.settling and logic._stretch.hops == 1
-    logic.resume((100.0, 84.5), (100.0, 84.5), (100.0, 84.5), 4)  # same point: the stretch goes on
-    assert logic._stretch.hops == 1
+    logic.new_stream()
+    v = _hop(logic, st, 0.0, 84.0, ((100.0, 84.1), (100.0, 83.9), 4))  # steady at 84 % within the new span
+    assert not v.settling and logic._stretch.hops == 1  # the stretch at 80 % ended, a new one began
+    logic.new_stream()
+    _hop(logic, st, 0.0, 84.5, ((100.0, 84.5), (100.0, 84.5), 4))  # same point: the stretch goes on
+    assert logic._stretch.hops == 2
     # a 3 %-point move inside a 4-hop span: a mid-stream step of that size moves the span reading
     # 0.75 %-points per hop, which holds nothing; so neither does this
-    logic.resume((100.0, 84.0), (100.0, 82.5), (100.0, 85.5), 4)
-    assert not logic.step(st, profile(), np.array([0.0]), st.cluster_mean, 84.0, 100.0, 1.0).settling
+    logic.new_stream()
+    assert not _hop(logic, st, 0.0, 84.0, ((100.0, 82.5), (100.0, 85.5), 4)).settling
     # 5 %-points inside the span: held, as the same step in the stream would be
-    logic.resume((100.0, 84.0), (100.0, 81.5), (100.0, 86.5), 4)
-    assert logic.step(st, profile(), np.array([5.0]), st.cluster_mean, 84.0, 100.0, 1.0).settling
+    logic.new_stream()
+    assert _hop(logic, st, 5.0, 84.0, ((100.0, 81.5), (100.0, 86.5), 4)).settling
 
 
 # --- commissioning -------------------------------------------------------------------------------
