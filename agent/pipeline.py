@@ -293,7 +293,7 @@ class DriveMonitor:
         """Ts/Lq of the q-axis regression (eq. 14) over the span, from per-hop information blocks:
         each sample enters the least squares once, on its hop (streaming RLS in information form).
         The span's rows are those of a record of the span plus the row that links it to the sample
-        before it."""
+        before it, where that sample belongs to the stream (not on a stream's first span)."""
         m = self.library.baselines[name].model
         if m.form not in ("lumped", "speed") or self.library.baselines[name].settings.get("prefilter_hz"):
             return cluster_point(self._signals(self.n_span), self.profile, m.form, m.extra_q,
@@ -303,7 +303,8 @@ class DriveMonitor:
         for end in ends:
             if self._q_info.get(end, (None,))[0] != name:
                 back = self._samples - end
-                part = self._signals(self.n_hop + 1 + back).slice(0, self.n_hop + 1)
+                n = self.n_hop + int(end > self.n_hop)  # with the sample before the hop, if the stream has it
+                part = self._signals(n + back).slice(0, n)
                 x = regressors(terms, part)[:-1]
                 self._q_info[end] = (name, x.T @ x, x.T @ part.i_dq[1, 1:])
         for old in [k for k in self._q_info if k not in ends]:

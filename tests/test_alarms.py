@@ -446,6 +446,34 @@ def test_the_same_record_gives_the_same_evidence_offline_and_in_the_agent(tmp_pa
     np.testing.assert_allclose([ev[f.name]["gross_threshold"] for f in base.evidence.features], gross, atol=1e-3)
 
 
+def test_a_streams_first_span_gives_the_cluster_point_of_its_record(tmp_path):
+    """The span's Ts/Lq links each hop to the sample before it, except where the stream has none:
+    on a stream's first span (also after a gap, with the previous stream's samples still in the
+    ring) it is the offline cluster point of a record of those samples."""
+    from agent.identify import cluster_point, record_signals
+
+    base = healthy_baseline()
+    lib = ModelLibrary(tmp_path / "lib")
+    lib.add("b80", base)
+    rec = sim("healthy", 80.0, 8.0, 701)
+    half = rec.n // 2
+    parts = [dataclasses.replace(rec, t=rec.t[cut], v_abc=rec.v_abc[:, cut], i_abc=rec.i_abc[:, cut])
+             for cut in (slice(0, half), slice(half, rec.n))]
+    mon = DriveMonitor("d1", profile(), lib, PipelineConfig())
+    seen = []
+    step = mon.alarms.step
+    mon.alarms.step = lambda stats, prof, window_y, point, *a, **kw: (seen.append(point), step(stats, prof, window_y, point, *a, **kw))[1]
+    for k, part in enumerate(parts):  # two streams of one span each: the second after a gap
+        for blk in blocks_of(part, 2500, k * 10 ** 6):
+            mon.process(blk)
+    assert len(seen) == 2
+    m = base.model
+    for point, part in zip(seen, parts):
+        want = cluster_point(record_signals(part, profile()), profile(), m.form, m.extra_q,
+                             base.settings.get("prefilter_hz"))
+        assert point[0] == pytest.approx(want[0], rel=1e-6)
+
+
 def test_stopped_drive_is_not_running_never_an_alarm(tmp_path):
     from agent.decision import diagnose
 
