@@ -293,7 +293,8 @@ class DriveMonitor:
         """Ts/Lq of the q-axis regression (eq. 14) over the span, from per-hop information blocks:
         each sample enters the least squares once, on its hop (streaming RLS in information form).
         The span's rows are those of a record of the span plus the row that links it to the sample
-        before it, where that sample belongs to the stream (not on a stream's first span)."""
+        before it, where the ring still holds that sample (not on a stream's first span, nor when a
+        change of baseline recomputes the span's oldest hop)."""
         m = self.library.baselines[name].model
         if m.form not in ("lumped", "speed") or self.library.baselines[name].settings.get("prefilter_hz"):
             return cluster_point(self._signals(self.n_span), self.profile, m.form, m.extra_q,
@@ -303,7 +304,7 @@ class DriveMonitor:
         for end in ends:
             if self._q_info.get(end, (None,))[0] != name:
                 back = self._samples - end
-                n = self.n_hop + int(end > self.n_hop)  # with the sample before the hop, if the stream has it
+                n = self.n_hop + int(back + self.n_hop + 1 <= self._filled)  # the sample before, if still held
                 part = self._signals(n + back).slice(0, n)
                 x = regressors(terms, part)[:-1]
                 self._q_info[end] = (name, x.T @ x, x.T @ part.i_dq[1, 1:])
