@@ -391,17 +391,25 @@ class Verdict:
 
 
 class _Stretch:
-    """Running sums over the hops of the current stretch (fixed memory)."""
+    """Running sums over the hops of the current stretch (fixed memory). The cluster point of a span
+    that holds the angle's acquisition is kept apart: a stretch uses it only if it has no other
+    (a snapshot source, whose every span starts a stream, and whose baseline learned them so)."""
 
     def __init__(self):
-        self.y, self.cluster, self.load, self.hops, self.seconds = 0.0, 0.0, 0.0, 0, 0.0
+        self.y, self.hops, self.seconds = 0.0, 0, 0.0
+        self.cluster = {True: [0.0, 0.0, 0], False: [0.0, 0.0, 0]}  #: clean? -> [sum point, sum load, n]
 
-    def add(self, y, point, load_pct: float, hop_s: float) -> None:
+    def add(self, y, point, load_pct: float, hop_s: float, clean: bool = True) -> None:
         self.y = self.y + np.asarray(y, dtype=float)
-        self.cluster = self.cluster + np.asarray(point, dtype=float)
-        self.load += load_pct
+        c = self.cluster[clean]
+        c[0], c[1], c[2] = c[0] + np.asarray(point, dtype=float), c[1] + load_pct, c[2] + 1
         self.hops += 1
         self.seconds += hop_s
+
+    def cluster_mean(self) -> tuple[np.ndarray, float]:
+        """(mean cluster point, mean load %) of the clean spans, else of the acquiring ones."""
+        c = self.cluster[True] if self.cluster[True][2] else self.cluster[False]
+        return c[0] / c[2], c[1] / c[2]
 
 
 class AlarmLogic:
@@ -418,6 +426,7 @@ class AlarmLogic:
         self._last_op: tuple[float, float] | None = None  #: the hop before's reading (None: a stream's first)
         self._stretch_op: tuple[float, float] | None = None  #: the reading last added to a stretch
         self._settling = False
+        self._acquiring = False
         self._last: Verdict = Verdict("normal", "normal", "normal", {})
         self.last_z: dict[str, float] = {}  #: the last stretch's z per test (diagnostics, benchmark)
         self._cluster_gross: dict | None = None
@@ -442,13 +451,15 @@ class AlarmLogic:
         """A gap in the stream: the next reading has no predecessor (see :meth:`observe`)."""
         self._last_op = None
 
-    def observe(self, op: tuple[float, float], hop_s: float, span_ends=None) -> bool:
+    def observe(self, op: tuple[float, float], hop_s: float, span_ends=None, acquiring: bool = False) -> bool:
         """Every hop's operating-point reading ``op`` (fe Hz, load %), assessed or not (no baseline,
         idle, learning): settling starts when it moved since the hop before, and the hold counts
         down. On a stream's first hop there is no hop before: ``span_ends`` = (first hop's reading,
         last hop's reading, hops per span) judges a step inside the span, whose size a step in the
         stream spreads over the span's hops; a stretch continues across the gap only at the same
-        operating point. True while settling; :meth:`step` holds its decision then."""
+        operating point. ``acquiring``: the span holds the angle's acquisition (a PLL locking after
+        the stream started), which biases its Ts/Lq: :meth:`step` keeps its cluster point apart
+        (:class:`_Stretch`). True while settling; :meth:`step` holds its decision then."""
         if self._last_op is not None:
             moved = self._moved(self._last_op, op)
         else:
@@ -458,6 +469,7 @@ class AlarmLogic:
         if moved:
             self._settle_left = self.config.settle_s
             self._stretch = _Stretch()  # a stretch never mixes operating points
+        self._acquiring = acquiring
         self._last_op = op
         self._settling = self._settle_left > 0
         if self._settling:
@@ -499,11 +511,11 @@ class AlarmLogic:
 
         # slow path: a CUSUM step per completed stretch
         st = self._stretch
-        st.add(window_y, cluster_point, load_pct, hop_s)
+        st.add(window_y, cluster_point, load_pct, hop_s, clean=not self._acquiring)
         self._stretch_op = (fe_hz, load_pct)
         closed = st.seconds >= stretch_s - 1e-9
         if closed:
-            z = np.append(stats.stretch_z(st.y / st.hops), stats.cluster_z(st.cluster / st.hops, st.load / st.hops))
+            z = np.append(stats.stretch_z(st.y / st.hops), stats.cluster_z(*st.cluster_mean()))
             self.last_z = dict(zip(names, np.round(z, 3).tolist()))
             # the cluster's gross test reads a whole stretch, and its verdict stands until the next
             self._cluster_gross = None if z[-1] < g_cluster else {

@@ -241,7 +241,8 @@ class DriveMonitor:
         if sig is None:
             return self._set(quality="bad_input", reason="NaN or saturated samples in the span")
         op = operating_point(sig, self.profile)
-        self.alarms.observe((op["fe_hz"], op["load_pct"]), self.config.hop_s, self._span_ends(sig))
+        self.alarms.observe((op["fe_hz"], op["load_pct"]), self.config.hop_s, self._span_ends(sig),
+                            acquiring=self._samples <= self.n_span and not self._encoder)
         idle = not_running(sig, self.profile)
         if idle is not None:
             return self._set(quality="no_model", model="", state="normal", spectrum_state="normal",

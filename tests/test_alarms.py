@@ -221,6 +221,26 @@ def test_hops_the_alarm_logic_does_not_assess_still_move_the_guard():
     assert not _hop(logic, st, 0.0, 64.0).settling
 
 
+def test_a_span_with_the_angles_acquisition_stays_out_of_a_continuing_stretch():
+    """A PLL locking at a stream's start biases that span's Ts/Lq: a stretch that has other spans
+    leaves its cluster point out; one made only of such spans (a snapshot source) uses them."""
+    st = _stats(40)
+    far = st.cluster_mean + np.array([0.0, 1.0])  # B_GT far out: a gross cluster warning if counted
+    logic = AlarmLogic(AlarmConfig(stretch_s=30.0))
+    logic.observe((100.0, 80.0), 1.0, acquiring=True)
+    logic.step(st, profile(), np.array([0.0]), far, 80.0, 100.0, 1.0)
+    for _ in range(29):
+        logic.observe((100.0, 80.0), 1.0)
+        v = logic.step(st, profile(), np.array([0.0]), st.cluster_mean, 80.0, 100.0, 1.0)
+    assert v.stretch_closed and v.state == "normal" and logic.last_z["cluster"] < 0.0  # at the mean
+    snap = AlarmLogic(AlarmConfig(stretch_s=30.0))
+    for _ in range(30):
+        snap.new_stream()
+        snap.observe((100.0, 80.0), 1.0, acquiring=True)
+        v = snap.step(st, profile(), np.array([0.0]), far, 80.0, 100.0, 1.0)
+    assert v.stretch_closed and v.state == "warning" and v.reason["feature"] == "cluster"
+
+
 def test_after_a_gap_settling_is_judged_within_the_new_span():
     """A stream that restarts (a gap) at another load is not a transition the windows saw: its
     first span is held only if the reading moves inside it as much as a held step would, and no
