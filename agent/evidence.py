@@ -397,19 +397,18 @@ class _Stretch:
 
     def __init__(self):
         self.y, self.hops, self.seconds = 0.0, 0, 0.0
-        self.cluster = {True: [0.0, 0.0, 0], False: [0.0, 0.0, 0]}  #: clean? -> [sum point, sum load, n]
+        self.cluster = np.zeros((2, 4))  #: rows clean, acquiring: sum of Ts/Lq, B_GT, load %; count
 
     def add(self, y, point, load_pct: float, hop_s: float, clean: bool = True) -> None:
         self.y = self.y + np.asarray(y, dtype=float)
-        c = self.cluster[clean]
-        c[0], c[1], c[2] = c[0] + np.asarray(point, dtype=float), c[1] + load_pct, c[2] + 1
+        self.cluster[0 if clean else 1] += (*point, load_pct, 1.0)
         self.hops += 1
         self.seconds += hop_s
 
     def cluster_mean(self) -> tuple[np.ndarray, float]:
         """(mean cluster point, mean load %) of the clean spans, else of the acquiring ones."""
-        c = self.cluster[True] if self.cluster[True][2] else self.cluster[False]
-        return c[0] / c[2], c[1] / c[2]
+        row = self.cluster[0] if self.cluster[0, 3] else self.cluster[1]
+        return row[:2] / row[3], row[2] / row[3]
 
 
 class AlarmLogic:
@@ -451,7 +450,7 @@ class AlarmLogic:
         """A gap in the stream: the next reading has no predecessor (see :meth:`observe`)."""
         self._last_op = None
 
-    def observe(self, op: tuple[float, float], hop_s: float, span_ends=None, acquiring: bool = False) -> bool:
+    def observe(self, op: tuple[float, float], hop_s: float, span_ends=None, acquiring: bool = False) -> None:
         """Every hop's operating-point reading ``op`` (fe Hz, load %), assessed or not (no baseline,
         idle, learning): settling starts when it moved since the hop before, and the hold counts
         down. On a stream's first hop there is no hop before: ``span_ends`` = (first hop's reading,
@@ -459,7 +458,7 @@ class AlarmLogic:
         stream spreads over the span's hops; a stretch continues across the gap only at the same
         operating point. ``acquiring``: the span holds the angle's acquisition (a PLL locking after
         the stream started), which biases its Ts/Lq: :meth:`step` keeps its cluster point apart
-        (:class:`_Stretch`). True while settling; :meth:`step` holds its decision then."""
+        (:class:`_Stretch`). While settling, :meth:`step` holds its decision."""
         if self._last_op is not None:
             moved = self._moved(self._last_op, op)
         else:
@@ -474,7 +473,6 @@ class AlarmLogic:
         self._settling = self._settle_left > 0
         if self._settling:
             self._settle_left -= hop_s
-        return self._settling
 
     def _tests(self, stats: EvidenceStats) -> tuple[list[str], float]:
         names = [f.name for f in stats.features] + ["cluster"]
