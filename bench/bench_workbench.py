@@ -35,6 +35,7 @@ ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "bench" / "results"
 NULL_LOADS = (40.0, 60.0, 90.0, 100.0)
 BASE_LOAD = 80.0
+STEP_PCT = 10.0  #: the load step, %-points, of the step scenario and the null sets with steps
 ALPHA_FW = 0.01  #: the explain's family-wise level (agent.workbench.explain.ALPHA)
 
 
@@ -66,6 +67,7 @@ class Scenario:
     encoder: bool = True  #: motulator's records carry its encoder angle (the rig's never: PLL, as the agent runs)
     nameplate: bool = False  #: the profile carries the nameplate R_s
     effect: str = ""  #: the hidden effect when the scenario's key is not its id
+    step_pct: float = 0.0  #: each record's load steps up by this many %-points a quarter into it
 
 
 def _const(recs, value):
@@ -85,11 +87,12 @@ class Rig:
     def __init__(self):
         self.profiles = _variants(self.path, 2.0)  # agent.simulator.rig.RigParams.R_s at 20 C
 
-    def records(self, effects: dict, loads, seconds: float, seed: int, reference=False, encoder=True):
+    def records(self, effects: dict, loads, seconds: float, seed: int, reference=False, encoder=True, step_pct=0.0):
         from agent.simulator import simulate
 
         prof = self.profiles[reference, False]
-        return [simulate(prof, "healthy", load, seconds, seed=seed + j, effects=effects or None)
+        return [simulate(prof, "healthy", load, seconds, seed=seed + j, effects=effects or None,
+                         load_step=(0.25 * seconds, load + step_pct) if step_pct else None)
                 for j, load in enumerate(loads)]
 
     @staticmethod
@@ -118,7 +121,7 @@ class Motulator:
         self.path = PROFILE
         self.profiles = _variants(PROFILE, R_S)
 
-    def records(self, effects: dict, loads, seconds: float, seed: int, reference=False, encoder=True):
+    def records(self, effects: dict, loads, seconds: float, seed: int, reference=False, encoder=True, step_pct=0.0):
         from agent.records import load_record
         from bench.thirdparty.motulator_drive import Run, cached
 
@@ -126,7 +129,7 @@ class Motulator:
         out = []
         for j, load in enumerate(loads):
             run = Run(load_pct=load, seconds=seconds, seed=seed + j, effects=dict(effects or {}),
-                      voltage="reference" if reference else "measured")
+                      voltage="reference" if reference else "measured", load_step_pct=step_pct)
             rec = load_record(cached(run), prof)
             if not encoder:  # the same record as a drive without an encoder gives it (the truth kept aside)
                 rec = dataclasses.replace(rec, theta_e=None, omega_e=None,
@@ -181,6 +184,9 @@ def scenarios(sim) -> dict[str, Scenario]:
         "magnetic_saturation+nameplate": Scenario(sat, (50.0, 80.0, 110.0), False, "lq_drop_at_rated",
                                                        sim.saturation_truth, nameplate=True,
                                                        effect="magnetic_saturation"),
+        # the same at constant speed with a load step in each record, which explain names as what reveals it
+        "voltage_delay+load_step": Scenario(1.0, (60.0, 90.0), False, "delay_samples", _delay_truth,
+                                            effect="voltage_delay", step_pct=STEP_PCT),
         "inverter_deadtime": Scenario(10.0, (50.0, 80.0, 110.0), True, "U_dt_V", _const),
         # the effect is the ripple a narrow-band speed signal misses: records without an encoder
         "speed_ripple": Scenario(1.0 if sim.name == "rig" else 1.5, (80.0,), False, "omega_e_ripple_rad_s",
@@ -215,7 +221,7 @@ class Bench:
         t0 = time.perf_counter()
         effect = sc.effect or name
         loads = sc.loads * (4 // len(sc.loads)) + sc.loads[: 4 % len(sc.loads)]
-        recs = self.sim.records({effect: sc.value}, loads, self.seconds, 100, sc.reference, sc.encoder)
+        recs = self.sim.records({effect: sc.value}, loads, self.seconds, 100, sc.reference, sc.encoder, sc.step_pct)
         doc = self.explain(recs, sc.reference, sc.nameplate)
         row = judge(doc, effect, sc.key, sc.truth(recs, sc.value))
         row["scenario"] = name
@@ -232,14 +238,15 @@ class Bench:
         self.say(f"{self.sim.name} pair {PAIR}: top two {top2}, significant {sig}")
         return {"effects": list(PAIR), "top2": top2, "significant": sig}
 
-    def null(self, n_sets: int, first_seed: int = 5000) -> dict:
+    def null(self, n_sets: int, first_seed: int = 5000, step_pct: float = 0.0) -> dict:
         claims = []
         for j in range(n_sets):
-            recs = self.sim.records({}, NULL_LOADS, self.seconds, first_seed + 10 * j)
+            recs = self.sim.records({}, NULL_LOADS, self.seconds, first_seed + 10 * j, step_pct=step_pct)
             doc = self.explain(recs)
             sig = [c["effect"] for c in doc["candidates"] if c["significant"]]
             claims.append(sig)
-            self.say(f"{self.sim.name} null set {j + 1}/{n_sets}: claims {sig or 'nothing'}")
+            self.say(f"{self.sim.name} null set {j + 1}/{n_sets}{' (load steps)' if step_pct else ''}: "
+                     f"claims {sig or 'nothing'}")
         return {"sets": n_sets, "claiming": sum(bool(c) for c in claims), "claims": claims}
 
 
@@ -259,7 +266,7 @@ def judge(doc: dict, effect: str, key: str, true: float) -> dict:
 
 
 def run(sims=("rig", "motulator"), seconds: float = 1.0, n_null: int = 25, effects=None, pair=True,
-        say=print) -> dict:
+        say=print, n_null_step: int = 10) -> dict:
     out = {"seconds": seconds, "sims": {}}
     for name in sims:
         sim = Rig() if name == "rig" else Motulator()
@@ -269,6 +276,7 @@ def run(sims=("rig", "motulator"), seconds: float = 1.0, n_null: int = 25, effec
         if pair:
             res["pair"] = b.pair()
         res["null"] = b.null(n_null)
+        res["null_step"] = b.null(n_null_step, first_seed=8000, step_pct=STEP_PCT)
         out["sims"][name] = res
     return out
 
@@ -285,8 +293,9 @@ def table(result: dict) -> str:
             lines.append(f"| {name} | {r.get('scenario', r['effect'])} | {r['top']} (rank {r['rank']}) | "
                          f"{'yes' if r['significant'] else 'no'} ({r['p_value']:.2g}) | {_fmt(r['nrmse_control'])} -> "
                          f"{_fmt(r['nrmse_after'])} ({_fmt(r['nrmse_best_wrong'])}); {'n/a' if r['noise_floor'] is None else _fmt(r['noise_floor'])} | "
-                         f"{r['gain']:.1f}x | "
-                         f"{r['key']} {r['fitted']:.4g} ({r['true']:.4g}), {100 * r['error']:+.0f} % |")
+                         f"{r['gain']:.3g}x | "
+                         f"{r['key']} {r['fitted']:.4g} ({r['true']:.4g}), {100 * r['error']:+.0f} %"
+                         f"{'' if r['identifiable'] else ', flagged not identifiable'} |")
         if "pair" in res:
             p = res["pair"]
             lines.append(f"| {name} | {' + '.join(p['effects'])} | {', '.join(p['top2'])} | "
@@ -298,6 +307,12 @@ def table(result: dict) -> str:
     lines.append(f"Null sets (no hidden effect, records at {', '.join(f'{x:g}' for x in NULL_LOADS)} % load against "
                  f"a model at {BASE_LOAD:g} %): {claiming} of {total} claim an effect ({per}); "
                  f"family-wise level {ALPHA_FW:g} per set.")
+    if all("null_step" in r for r in result["sims"].values()):
+        total = sum(r["null_step"]["sets"] for r in result["sims"].values())
+        claiming = sum(r["null_step"]["claiming"] for r in result["sims"].values())
+        per = "; ".join(f"{n}: {r['null_step']['claiming']} of {r['null_step']['sets']}" for n, r in result["sims"].items())
+        lines.append(f"Null sets with a {STEP_PCT:g} %-point load step a quarter into each record: {claiming} of {total} "
+                     f"claim an effect ({per}).")
     return "\n".join(lines)
 
 
@@ -306,8 +321,10 @@ def main(argv=None) -> int:
     p.add_argument("--sims", default="rig,motulator", help="comma-separated: rig, motulator")
     p.add_argument("--seconds", type=float, default=1.0, help="record length, s (default 1.0)")
     p.add_argument("--null", type=int, default=25, help="null record sets per simulator (default 25)")
-    p.add_argument("--effects", default="", help="comma-separated scenarios: effect ids, or "
-                   "magnetic_saturation+nameplate (default: all)")
+    p.add_argument("--effects", default="", help="comma-separated scenarios: effect ids, "
+                   "magnetic_saturation+nameplate or voltage_delay+load_step (default: all)")
+    p.add_argument("--null-steps", type=int, default=10, help="null record sets with load steps per simulator "
+                   "(default 10)")
     p.add_argument("--no-pair", action="store_true", help="skip the two-effect scenario")
     p.add_argument("--short", action="store_true", help="`make test`'s form: 0.6 s records, 2 null sets")
     a = p.parse_args(argv)
@@ -322,16 +339,16 @@ def main(argv=None) -> int:
             p.error("--sims motulator: motulator is not installed (make setup-test installs it)")
     if not 0.4 <= a.seconds <= 10:
         p.error(f"--seconds: {a.seconds:g} is outside 0.4..10 s (the hold-out needs half of each record)")
-    if a.null < 0:
-        p.error(f"--null: {a.null} is negative")
-    from agent.effects import EFFECTS
-
-    unknown = [e for e in a.effects.split(",") if e and e.split("+")[0] not in EFFECTS]
+    for flag, n in (("--null", a.null), ("--null-steps", a.null_steps)):
+        if n < 0:
+            p.error(f"{flag}: {n} is negative")
+    known = scenarios(Rig())
+    unknown = [e for e in a.effects.split(",") if e and e not in known]
     if unknown:
-        p.error(f"--effects: unknown effect {unknown[0]!r} (known: {', '.join(EFFECTS)})")
-    seconds, n_null = (0.6, 2) if a.short else (a.seconds, a.null)
+        p.error(f"--effects: unknown scenario {unknown[0]!r} (known: {', '.join(known)})")
+    seconds, n_null, n_step = (0.6, 2, 1) if a.short else (a.seconds, a.null, a.null_steps)
     say = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
-    res = run(sims, seconds, n_null, [e for e in a.effects.split(",") if e] or None, not a.no_pair, say)
+    res = run(sims, seconds, n_null, [e for e in a.effects.split(",") if e] or None, not a.no_pair, say, n_step)
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "workbench.json").write_text(json.dumps(res, indent=1, default=str))
     print(table(res))

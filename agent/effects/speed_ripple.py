@@ -35,22 +35,27 @@ def columns(sig):
     # -j dw psi_s (V), whatever the frame. psi_s's direction in the frame is that of the mean
     # voltage, psi_s ~ v_bar / (j omega_e) (the resistive drop R_s i, a few % of v at speed, left
     # out), so the column is -(dw / omega_e) v_bar. A frame that follows the current vector also
-    # turns with the current's angle to the rotor (under MTPA it moves with i_q): the rotor's flux
-    # then turns by a share of the frame's angle ripple theta_w in it, omega_e theta_w psi_s,
-    # in quadrature with the first.
+    # turns against the rotor (under MTPA the current's angle moves with i_q): by delta beta =
+    # s theta_w, a share s of its angle ripple. Then the rotor's speed ripple is (1 - s) dw and its
+    # flux psi_m, on the frame's d axis, misses s (omega_e theta_w - j dw) psi_m besides.
     dw, theta_w = _lines(sig)
     w = float(np.mean(sig.omega_e))
     v_d, v_q = float(np.mean(sig.v_dq[0])), float(np.mean(sig.v_dq[1]))
-    speed = -np.stack((dw * v_d, dw * v_q)) / w if w else np.zeros((2, sig.n))
-    angle = np.stack((theta_w * v_q, -theta_w * v_d))
+    if not w:
+        return np.zeros((2, 2, sig.n))
+    speed = -np.stack((dw * v_d, dw * v_q)) / w
+    psi_d = v_q / w  # the stator flux's d component, the rotor's flux where L_d i_d is small
+    angle = -np.stack((w * theta_w * psi_d, -dw * psi_d))
+    # less its projection on the speed column: s keeps its meaning, the pair is better conditioned
+    angle = angle - speed * (np.sum(angle * speed) / max(float(np.sum(speed * speed)), 1e-300))
     return np.stack((speed, angle))
 
 
 def report(v, ctx):
-    # the measured line times the share of it the fit confirms
+    # the rotor's ripple (1 - s) dw, s the fitted share of the frame's angle ripple
     dw = float(np.mean([np.sqrt(2.0) * np.std(speed_error_line(s)) for s in ctx["signals"]]))
-    return {"omega_e_ripple_rad_s": dw * float(v[0]), "frame_angle_share": float(v[1]),
-            "measured_speed_error_rad_s": dw}
+    return {"omega_e_ripple_rad_s": dw * (1.0 - float(v[1])), "frame_angle_share": float(v[1]),
+            "measured_speed_error_rad_s": dw, "k_w": float(v[0])}
 
 
 EFFECT = Effect(
@@ -60,10 +65,11 @@ EFFECT = Effect(
             "signal does not carry: it misses -j delta omega_e psi_s (V), the ripple times the stator "
             "flux linkage, in any frame.",
     kind="voltage",
-    params=(Param("k_w", "-", "the rotor's speed ripple as a multiple of the speed error the records' angle "
-                  "shows (1: the angle follows the rotor)", 1.0, 0.0, 3.0),
-            Param("k_theta", "-", "share of the frame's angle ripple by which the rotor's flux turns in it "
-                  "(0 when the frame follows the rotor; a current-vector frame under MTPA)", 0.1, -1.0, 1.0)),
+    params=(Param("k_w", "-", "gain on -j dw psi_s, dw the speed error the records' angle shows (1 where the "
+                  "model's response to it is exact; it does not scale the reported ripple)", 1.0, 0.0, 3.0),
+            Param("frame_share", "-", "share s of the frame's angle ripple that is the frame turning against the "
+                  "rotor (0 when the angle follows the rotor; a current-vector frame under MTPA): the rotor's "
+                  "ripple is (1 - s) dw", 0.1, -1.0, 1.0)),
     columns=columns, report=report,
     signature="f_r = fe/p in dq (fe +- f_r in the phase residual, the driving-gear line k = 1), in "
               "phase with the ripple of the angle's rotation",

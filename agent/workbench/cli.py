@@ -7,10 +7,13 @@ from __future__ import annotations
 
 import logging
 import sys
+import textwrap
 from datetime import datetime, timezone
 from pathlib import Path
 
 from agent.errors import InputError
+
+NOTE_SHARE = 0.01  #: explain's text shows the note of a candidate that explains at least this share
 
 log = logging.getLogger("pmsm-agent.model")
 
@@ -112,6 +115,8 @@ def cmd_explain(args) -> None:
         share = "   n/a" if r["explained_fraction"] is None else f"{100 * r['explained_fraction']:6.1f}"
         lines.append(f"  {r['effect']:22s} explains {share} %  NRMSE {_pct(r['nrmse_after'])}  {mark:16s} "
                      + ", ".join(f"{k} {v:.4g}" for k, v in r["params"].items()))
+        if r.get("note") and (r["explained_fraction"] or 0.0) >= NOTE_SHARE:  # what the records cannot tell, and what would
+            lines += textwrap.wrap(r["note"], 100, initial_indent=" " * 4, subsequent_indent=" " * 6)
     _emit(args, doc, "\n".join(lines))
 
 

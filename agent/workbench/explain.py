@@ -18,6 +18,8 @@ never less than the records; Holm's step-down correction over the candidates kee
 family-wise level ``ALPHA``; a practical floor ``MIN_EXPLAINED`` applies. An effect the records
 cannot pin down (:attr:`agent.workbench.fitting.Refit.identifiable`) or whose fitted parameter sits
 on its physical bound is never significant; the row says which, and which records would reveal it.
+One that explains enough but misses the level says how many records like these would settle it
+(:func:`records_needed`).
 """
 
 from __future__ import annotations
@@ -150,21 +152,53 @@ def nested(ctrl: Refit, preps: list[Prepared], new: tuple, base: dict, prior: di
     return out
 
 
+def _block_shares(ctrl: dict, cand: dict) -> list[np.ndarray]:
+    """Per record, per block: (SSE_control - SSE_candidate - (floor_control - floor_candidate)) / SSE_control."""
+    return [(a - b - fa + fb) / np.maximum(a, 1e-300)
+            for a, b, fa, fb in zip(ctrl["records"], cand["records"], ctrl["floor_records"], cand["floor_records"])]
+
+
 def block_p(ctrl: dict, cand: dict) -> float:
     """One-sided p-value that the candidate lowers the held-out error: a t-test of the per-block
-    share explained, (SSE_control - SSE_candidate - (floor_control - floor_candidate)) / SSE_control,
-    with the effective sample size of :func:`effective_size`
+    share explained (:func:`_block_shares`) with the effective sample size of :func:`effective_size`
     (1 when fewer than ``MIN_RECORDS`` records or either free run is unstable)."""
     if not (ctrl["stable"] and cand["stable"]) or len(ctrl["records"]) < MIN_RECORDS:
         return 1.0
-    d = [(a - b - fa + fb) / np.maximum(a, 1e-300)
-         for a, b, fa, fb in zip(ctrl["records"], cand["records"], ctrl["floor_records"], cand["floor_records"])]
-    mean, var, n_eff = effective_size(d)
+    mean, var, n_eff = effective_size(_block_shares(ctrl, cand))
     if mean <= 0:
         return 1.0
     if var == 0:
         return 0.0
     return float(scipy.stats.t.sf(mean / np.sqrt(var / n_eff), max(n_eff - 1.0, 1.0)))
+
+
+def records_needed(ctrl: dict, cand: dict, alpha: float, most: int = 40) -> int | None:
+    """How many records like these would bring :func:`block_p` below ``alpha`` if the candidate's
+    share were as measured (its mean and spread kept, the effective sample size growing with the
+    records); None beyond ``most`` or when it explains nothing."""
+    if not (ctrl["stable"] and cand["stable"]):
+        return None
+    d = _block_shares(ctrl, cand)
+    mean, var, n_eff = effective_size(d)
+    if mean <= 0:
+        return None
+    per = n_eff / len(d)
+    for n_rec in range(max(len(d), MIN_RECORDS), most + 1):
+        n = n_rec * per
+        if var == 0 or scipy.stats.t.sf(mean / np.sqrt(var / n), max(n - 1.0, 1.0)) < alpha:
+            return n_rec
+    return None
+
+
+def too_few_note(ctrl: dict, cand: dict, alpha: float) -> str:
+    """Why a candidate that explains enough is not significant at ``alpha``, and how many records
+    like these would make it so (:func:`records_needed`)."""
+    shares = [float(np.mean(x)) for x in _block_shares(ctrl, cand)]
+    more = records_needed(ctrl, cand, alpha)
+    return (f"not significant with these {len(shares)} records (p = {block_p(ctrl, cand):.2g}, Holm needs < "
+            f"{alpha:.2g}): its share of the error is {min(shares):.0%} to {max(shares):.0%} between records; "
+            + (f"about {more} records like these would settle it if it is as large as measured" if more else
+               "more records like these would not settle it"))
 
 
 def holm(p_values: list[float], alpha: float) -> list[bool]:
@@ -255,9 +289,10 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
             fits = [r if r.cost <= ctrl.cost else _zero_effect(ctrl, eid, r.at_bound.get(eid, False))
                     for eid, r in zip(candidates, fits)]
     h_ctrl = heldout(ctrl.model, preps)
-    rows, p_values = [], []
+    rows, p_values, held = [], [], []
     for eid, r in zip(candidates, fits):
         h = heldout(r.model, preps)
+        held.append(h)
         identifiable, how = r.identifiable[eid]
         eff = EFFECTS[eid]
         bound = r.at_bound.get(eid, False)
@@ -280,9 +315,13 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
             row["note"] = h["note"]
         rows.append(row)
     reject = holm(p_values, ALPHA)
+    level = ALPHA / (len(p_values) - sum(reject)) if p_values else ALPHA  # what the next in Holm's order needs
     for row, rej in zip(rows, reject):
         row["significant"] = bool(rej and _claimable(row))
     _forward(rows, dict(zip(candidates, fits)), preps, base, prior)
+    for row, h in zip(rows, held):
+        if not row["significant"] and _claimable(row) and row["p_value"] < 1.0:
+            row["note"] = "; ".join(filter(None, [row.get("note"), too_few_note(h_ctrl, h, level)]))
     rows.sort(key=lambda r: (r["significant"], r["explained_fraction"] if r["explained_fraction"] is not None
                              else -np.inf), reverse=True)
     doc = {"nrmse_before": _total(before), "nrmse_control": _total(h_ctrl),

@@ -29,6 +29,9 @@ flux_harmonics    a subclass of motulator's machine: magnet flux psi_f + psi_6 c
 speed_ripple      load-torque ripple T sin(omega_M t) through motulator's two-mass shaft      N m
 ================  =========================================================================  ==========
 
+A record may carry a load step (``load_step_pct``: the load torque steps by that many %-points of
+rated a quarter into the record, and stays), the transient that reveals a delay at constant speed.
+
 Simulation speed: about 6 times slower than real time at 10 kHz without PWM (``pwm=True``: the
 carrier comparison, several times slower again). :func:`cached` keeps records on disk.
 """
@@ -68,9 +71,12 @@ class Run:
     speed_pct: float = 100.0
     noise_a: float = 0.01  #: current-sensor white noise, A rms
     noise_v: float = 0.5  #: voltage-channel white noise, V rms
+    load_step_pct: float = 0.0  #: load change, %-points of rated, a quarter into the record (it stays)
 
     def key(self) -> str:
-        doc = json.dumps({**self.__dict__, "effects": sorted(self.effects.items()),
+        fields = {k: v for k, v in self.__dict__.items() if k != "load_step_pct" or v}  # keys of records without a step stay
+        fields.update({"step_at": 0.25} if self.load_step_pct else {})
+        doc = json.dumps({**fields, "effects": sorted(self.effects.items()),
                           "v": 2 if "voltage_delay" in self.effects else 1}, sort_keys=True)
         return hashlib.sha1(doc.encode()).hexdigest()[:16]
 
@@ -127,8 +133,12 @@ def simulate(run: Run) -> dict:
     ripple = float(eff.get("speed_ripple", 0.0))
     phase = rng.uniform(0, 2 * np.pi)
 
+    step = run.load_step_pct / 100.0 * TAU_RATED
+    t_step = WARMUP_S + 0.25 * run.seconds
+
     def tau_l(t):  # time only; arrays in post-processing
-        return tau + ripple * np.sin(w_ref / N_P * np.asarray(t) + phase)
+        t = np.asarray(t)
+        return tau + ripple * np.sin(w_ref / N_P * t + phase) + step * (t >= t_step)
 
     machine = _machine(eff)
     mech = model.TwoMassMechanicalSystem(TwoMassMechanicalSystemPars(J_M=J_M, J_L=J_L, K_S=K_S, C_S=C_S),
