@@ -423,7 +423,8 @@ class AlarmLogic:
         self._stretch = _Stretch()
         self._settle_left = 0.0
         self._last_op: tuple[float, float] | None = None  #: the hop before's reading (None: a stream's first)
-        self._stretch_op: tuple[float, float] | None = None  #: the reading last added to a stretch
+        self._before_gap: tuple[float, float] | None = None  #: the last reading before the stream restarted
+        self.new_stretch = False  #: the last reading started a new stretch (a move, or a gap with one)
         self._settling = False
         self._acquiring = False
         self._last: Verdict = Verdict("normal", "normal", "normal", {})
@@ -446,8 +447,14 @@ class AlarmLogic:
         """No reading since the stream (re)started."""
         return self._last_op is None
 
+    @property
+    def settling(self) -> bool:
+        """The last reading :meth:`observe` saw is within the settling hold after a move."""
+        return self._settling
+
     def new_stream(self) -> None:
         """A gap in the stream: the next reading has no predecessor (see :meth:`observe`)."""
+        self._before_gap = self._last_op or self._before_gap
         self._last_op = None
 
     def observe(self, op: tuple[float, float], hop_s: float, span_ends=None, acquiring: bool = False) -> None:
@@ -455,19 +462,21 @@ class AlarmLogic:
         idle, learning): settling starts when it moved since the hop before, and the hold counts
         down. On a stream's first hop there is no hop before: ``span_ends`` = (first hop's reading,
         last hop's reading, hops per span) judges a step inside the span, whose size a step in the
-        stream spreads over the span's hops; a stretch continues across the gap only at the same
-        operating point. ``acquiring``: the span holds the angle's acquisition (a PLL locking after
+        stream spreads over the span's hops; a stretch continues across the gap only at the reading
+        before it (:attr:`new_stretch` says when one restarts; commissioning's stretches follow it
+        too). ``acquiring``: the span holds the angle's acquisition (a PLL locking after
         the stream started), which biases its Ts/Lq: :meth:`step` keeps its cluster point apart
         (:class:`_Stretch`). While settling, :meth:`step` holds its decision."""
         if self._last_op is not None:
-            moved = self._moved(self._last_op, op)
+            moved = broke = self._moved(self._last_op, op)
         else:
             moved = span_ends is not None and self._moved(span_ends[0], span_ends[1], span_ends[2])
-            if self._stretch_op is not None and self._moved(self._stretch_op, op):
-                self._stretch = _Stretch()
+            broke = moved or (self._before_gap is not None and self._moved(self._before_gap, op))
         if moved:
             self._settle_left = self.config.settle_s
+        if broke:
             self._stretch = _Stretch()  # a stretch never mixes operating points
+        self.new_stretch = broke
         self._acquiring = acquiring
         self._last_op = op
         self._settling = self._settle_left > 0
@@ -510,7 +519,6 @@ class AlarmLogic:
         # slow path: a CUSUM step per completed stretch
         st = self._stretch
         st.add(window_y, cluster_point, load_pct, hop_s, clean=not self._acquiring)
-        self._stretch_op = (fe_hz, load_pct)
         closed = st.seconds >= stretch_s - 1e-9
         if closed:
             z = np.append(stats.stretch_z(st.y / st.hops), stats.cluster_z(*st.cluster_mean()))

@@ -362,8 +362,6 @@ class DriveMonitor:
         self._learn_replace = replace
         self._learn_mark = -(1 << 62)
         self._learn_stretch: dict = {"y": [], "points": [], "loads": [], "seconds": 0.0}
-        self._learn_settle = 0.0
-        self._learn_last_op: tuple | None = None
         self._learn_seconds = 0.0
         self._learn_reported = -1
         self._learn_hops = self._learn_bad = 0
@@ -409,14 +407,9 @@ class DriveMonitor:
                     self.on_event("learning", {"name": self._learn_name, "phase": "thresholds",
                                                "progress_pct": self.learn_progress_pct})
             return self._learning_status(op)
-        key = (op["fe_hz"], op["load_pct"])
-        if self._learn_last_op is not None and (abs(key[0] - self._learn_last_op[0]) > c.alarm.settle_fe_hz
-                                                or abs(key[1] - self._learn_last_op[1]) > c.alarm.settle_load_pct):
-            self._learn_settle = c.alarm.settle_s
-            self._learn_stretch = {"y": [], "points": [], "loads": [], "seconds": 0.0}
-        self._learn_last_op = key
-        if self._learn_settle > 0:
-            self._learn_settle -= hop_s
+        if self.alarms.new_stretch:  # the guard saw this hop's reading (AlarmLogic.observe)
+            self._learn_stretch = {"y": [], "points": [], "loads": [], "seconds": 0.0}  # never mixes operating points
+        if self.alarms.settling:
             return self._learning_status(op)
         model = b.model()
         last = sig.slice(self.n_span - self.n_win, self.n_span)

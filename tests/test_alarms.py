@@ -281,6 +281,26 @@ def _learn(lib, records, name="b", replace=False, cfg=SHORT_LEARN):
     return mon, events
 
 
+def test_learning_stretches_follow_the_guard_across_gaps_and_steps(tmp_path):
+    """Commissioning's stretches never mix operating points: records at 80 % and then at 83.5 %
+    load, each a new stream (a gap before it), give stretches at one load or the other; the guard's
+    gap rule (AlarmLogic.observe) starts a new one at the first span after the gap. Within a
+    stream a step of 3.5 %-points settles first."""
+    from agent.simulator import simulate
+
+    def two_levels(mon):
+        loads = np.array(mon._builder.stretch_load)
+        lo, hi = loads.min(), loads.max()
+        assert hi - lo > 3.0 and np.all(np.minimum(loads - lo, hi - loads) < 0.5), loads
+
+    lib = ModelLibrary(tmp_path / "lib")
+    cfg = dataclasses.replace(SHORT_LEARN, learn_stretches=1000)
+    recs = [sim("healthy", 80.0, 8.0, 320 + j) for j in range(6)] + [sim("healthy", 83.5, 8.0, 330 + j) for j in range(3)]
+    two_levels(_learn(lib, recs, cfg=cfg)[0])
+    step = simulate(profile(), "healthy", 80.0, 56.0, seed=340, load_step=(38.0, 83.5))
+    two_levels(_learn(lib, [step], cfg=cfg)[0])
+
+
 def test_learning_refuses_a_load_spread(tmp_path):
     lib = ModelLibrary(tmp_path / "lib")
     recs = [sim("healthy", 80.0, 8.0, 300 + j) for j in range(4)] + [sim("healthy", 70.0, 8.0, 310 + j) for j in range(6)]
