@@ -86,6 +86,11 @@ class PipelineConfig:
             raise ValueError("pipeline: hop_s must divide window_s, span_windows >= 1")
 
 
+def _learn_stretch() -> dict:
+    """An empty commissioning stretch: per hop the features, cluster point and load, and its length, s."""
+    return {"y": [], "points": [], "loads": [], "seconds": 0.0}
+
+
 class DriveMonitor:
     """The pipeline of one drive; ``process(block)`` returns a status per completed hop."""
 
@@ -361,7 +366,7 @@ class DriveMonitor:
         self._learn_name = name
         self._learn_replace = replace
         self._learn_mark = -(1 << 62)
-        self._learn_stretch: dict = {"y": [], "points": [], "loads": [], "seconds": 0.0}
+        self._learn_stretch = _learn_stretch()
         self._learn_seconds = 0.0
         self._learn_reported = -1
         self._learn_hops = self._learn_bad = 0
@@ -408,7 +413,7 @@ class DriveMonitor:
                                                "progress_pct": self.learn_progress_pct})
             return self._learning_status(op)
         if self.alarms.new_stretch:  # the guard saw this hop's reading (AlarmLogic.observe)
-            self._learn_stretch = {"y": [], "points": [], "loads": [], "seconds": 0.0}  # never mixes operating points
+            self._learn_stretch = _learn_stretch()  # never mixes operating points
         if self.alarms.settling:
             return self._learning_status(op)
         model = b.model()
@@ -427,7 +432,7 @@ class DriveMonitor:
         if st["seconds"] >= c.alarm.stretch_s - 1e-9:
             b.add_stretch(np.array(st["y"]), np.mean(st["points"], axis=0), float(np.mean(st["loads"])),
                           st["seconds"])
-            self._learn_stretch = {"y": [], "points": [], "loads": [], "seconds": 0.0}
+            self._learn_stretch = _learn_stretch()
             loads = np.array(b.stretch_load)
             fes = np.array([f.operating_point["fe_hz"] for f in b.fits])
             spread = float(np.ptp(loads))
