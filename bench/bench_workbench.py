@@ -255,7 +255,7 @@ def judge(doc: dict, effect: str, key: str, true: float) -> dict:
     names = [c["effect"] for c in doc["candidates"]]
     row = doc["candidates"][names.index(effect)]
     wrong = min(c["nrmse_after"] for c in doc["candidates"] if c["effect"] != effect)
-    fitted = row["params"][key]
+    fitted = (row["params"] if row["identifiable"] else row["unpinned_params"])[key]  # reported only when pinned
     return {"effect": effect, "rank": names.index(effect) + 1, "top": names[0], "significant": row["significant"],
             "nrmse_before": doc["nrmse_before"], "nrmse_control": doc["nrmse_control"],
             "nrmse_after": row["nrmse_after"], "nrmse_best_wrong": wrong, "noise_floor": doc.get("noise_floor"),
@@ -294,8 +294,9 @@ def table(result: dict) -> str:
                          f"{'yes' if r['significant'] else 'no'} ({r['p_value']:.2g}) | {_fmt(r['nrmse_control'])} -> "
                          f"{_fmt(r['nrmse_after'])} ({_fmt(r['nrmse_best_wrong'])}); {'n/a' if r['noise_floor'] is None else _fmt(r['noise_floor'])} | "
                          f"{r['gain']:.3g}x | "
-                         f"{r['key']} {r['fitted']:.4g} ({r['true']:.4g}), {100 * r['error']:+.0f} %"
-                         f"{'' if r['identifiable'] else ', flagged not identifiable'} |")
+                         + (f"{r['key']} {r['fitted']:.4g} ({r['true']:.4g}), {100 * r['error']:+.0f} %" if r['identifiable']
+                            else f"{r['key']} not identifiable, not reported (the fit's value {r['fitted']:.4g}, "
+                                 f"{100 * r['error']:+.0f} %)") + " |")
         if "pair" in res:
             p = res["pair"]
             lines.append(f"| {name} | {' + '.join(p['effects'])} | {', '.join(p['top2'])} | "

@@ -70,15 +70,11 @@ def scenario_records(effect: str | None, seconds: float, seed: int = 100) -> lis
 
 
 def judge(effect: str, recs: list, doc: dict) -> dict:
-    """The brief's figures of one scenario from its ``explain`` document."""
+    """The brief's figures of one scenario from its ``explain`` document (:func:`bench.bench_workbench.judge`)."""
+    from bench.bench_workbench import judge as judge_doc
+
     _, _, _, key, truth = SCENARIOS[effect]
-    rank = [c["effect"] for c in doc["candidates"]].index(effect) + 1
-    row = next(c for c in doc["candidates"] if c["effect"] == effect)
-    wrong = min(c["nrmse_after"] for c in doc["candidates"] if c["effect"] != effect)
-    true = truth(recs)
-    return {"effect": effect, "rank": rank, "significant": row["significant"], "nrmse_control": doc["nrmse_control"],
-            "nrmse_after": row["nrmse_after"], "nrmse_best_wrong": wrong, "key": key,
-            "fitted": row["params"][key], "true": true, "error": row["params"][key] / true - 1.0}
+    return judge_doc(doc, effect, key, truth(recs))
 
 
 def run(seconds: float = 1.2, say=print) -> dict:

@@ -12,7 +12,7 @@ import pytest
 
 from agent.baseline import identify_baseline
 from agent.cli import main
-from agent.effects import EFFECTS, get, model_terms
+from agent.effects import EFFECTS, get, model_terms, params_text
 from agent.errors import InputError
 from agent.frames import dq_to_abc
 from agent.model import DQModel, Signals, Term, lumped_params
@@ -295,6 +295,12 @@ def test_one_load_saturation_is_reported_not_identifiable(base80):
     doc = explain(base80, prepare(recs, GEAR), candidates=["magnetic_saturation", "current_offset"])
     sat = next(c for c in doc["candidates"] if c["effect"] == "magnetic_saturation")
     assert not sat["identifiable"] and not sat["significant"] and "several loads" in sat["note"]
+    # its value is not reported as a measurement, here or by add-effect; what the fit landed on is kept apart
+    assert set(sat["params"].values()) == {None} and set(sat["unpinned_params"]) == set(sat["params"])
+    assert params_text(sat["params"]) == "not identifiable"
+    _, fig = add_effects(base80, prepare(recs, GEAR), ["magnetic_saturation"])
+    assert set(fig["params"]["magnetic_saturation"].values()) == {None}
+    assert any(w.startswith("magnetic_saturation: not identifiable") for w in fig["warnings"])
 
 
 @pytest.mark.slow

@@ -11,6 +11,7 @@ import textwrap
 from datetime import datetime, timezone
 from pathlib import Path
 
+from agent.effects import params_text
 from agent.errors import InputError
 
 NOTE_SHARE = 0.01  #: explain's text shows the note of a candidate that explains at least this share
@@ -114,7 +115,7 @@ def cmd_explain(args) -> None:
                 else "at bound" if r["at_bound"] else "")
         share = "   n/a" if r["explained_fraction"] is None else f"{100 * r['explained_fraction']:6.1f}"
         lines.append(f"  {r['effect']:22s} explains {share} %  NRMSE {_pct(r['nrmse_after'])}  {mark:16s} "
-                     + ", ".join(f"{k} {v:.4g}" for k, v in r["params"].items()))
+                     + ("" if mark == "not identifiable" else params_text(r["params"])))
         if r.get("note") and (r["explained_fraction"] or 0.0) >= NOTE_SHARE:  # what the records cannot tell, and what would
             lines += textwrap.wrap(r["note"], 100, initial_indent=" " * 4, subsequent_indent=" " * 6)
     _emit(args, doc, "\n".join(lines))
@@ -156,8 +157,7 @@ def cmd_add_effect(args) -> None:
     _emit(args, doc, (f"wrote {args.out} (version {entry['version']}, effects {', '.join(entry['effects'])})\n"
                       f"held-out free-run NRMSE beyond the noise floor: before {_pct(fig['nrmse_before'])}, control "
                       f"{_pct(fig['nrmse_control'])}, with {'+'.join(effects)} {_pct(fig['nrmse_after'])}\n"
-                      + "\n".join(f"  {e}: " + ", ".join(f"{k} {v:.4g}" for k, v in p.items())
-                                  for e, p in fig["params"].items())))
+                      + "\n".join(f"  {e}: {params_text(p)}" for e, p in fig["params"].items())))
 
 
 def cmd_history(args) -> None:

@@ -152,6 +152,26 @@ def nested(ctrl: Refit, preps: list[Prepared], new: tuple, base: dict, prior: di
     return out
 
 
+def reported(eid: str, r: Refit, ctx: dict) -> dict:
+    """Effect ``eid``'s parameters as refit ``r`` reports them: ``params``, its values where the
+    records pin it down and None where they cannot (as identify reports base values), and then
+    ``unpinned_params``, the values the fit landed on, which measure nothing."""
+    values = get_effect(eid).report(r.values[eid], ctx)
+    if r.identifiable[eid][0]:
+        return {"params": values}
+    return {"params": dict.fromkeys(values), "unpinned_params": values}
+
+
+def unidentified_note(eid: str, how: dict) -> str:
+    """Why the records cannot pin effect ``eid`` down (``how``: :attr:`Refit.identifiable`'s
+    judgement), and which records would."""
+    why = ("the one-step regression pins it to no better than +-{:.0%} of a typical size".format(how["relative_se"])
+           if how["stage"] == "one-step" else
+           "it does not lower the error on the fit segments" if how["stage"].startswith("no gain") else
+           "a typical one would be absorbed into the base parameters")
+    return f"not identifiable from these records: {why}; revealed by {get_effect(eid).reveals}"
+
+
 def _block_shares(ctrl: dict, cand: dict) -> list[np.ndarray]:
     """Per record, per block: (SSE_control - SSE_candidate - (floor_control - floor_candidate)) / SSE_control."""
     return [(a - b - fa + fb) / np.maximum(a, 1e-300)
@@ -294,20 +314,14 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
         h = heldout(r.model, preps)
         held.append(h)
         identifiable, how = r.identifiable[eid]
-        eff = EFFECTS[eid]
         bound = r.at_bound.get(eid, False)
         p_values.append(block_p(h_ctrl, h))
         row = {"effect": eid, "nrmse_after": _total(h), "explained_fraction": _share(h_ctrl, h),
                "significant": False, "p_value": p_values[-1], "identifiable": identifiable, "at_bound": bound,
-               "params": eff.report(r.values[eid], context(r, preps, baseline.profile)),
-               "nrmse_after_dq": _dq(h),
-               "identifiability": how}
+               "nrmse_after_dq": _dq(h), "identifiability": how,
+               **reported(eid, r, context(r, preps, baseline.profile))}
         if not identifiable:
-            why = ("the one-step regression pins it to no better than +-{:.0%} of a typical size".format(
-                how["relative_se"]) if how["stage"] == "one-step" else
-                "it does not lower the error on the fit segments" if how["stage"].startswith("no gain") else
-                "a typical one would be absorbed into the base parameters")
-            row["note"] = f"not identifiable from these records: {why}; revealed by {eff.reveals}"
+            row["note"] = unidentified_note(eid, how)
         if bound:
             row["note"] = "; ".join(filter(None, ["at bound: the fit wants it beyond its physical range, so it is "
                                                   "not this effect", row.get("note")]))
@@ -354,9 +368,13 @@ def add_effects(baseline, preps: list[Prepared], effect_ids) -> tuple[object, di
     ctx = context(r, preps, baseline.profile)
     h_before, h_ctrl, h_after = heldout(model, preps), heldout(ctrl.model, preps), heldout(r.model, preps)
     figures = {"nrmse_before": _total(h_before), "nrmse_control": _total(h_ctrl), "nrmse_after": _total(h_after),
-               "params": {e: get_effect(e).report(r.values[e], ctx) for e in have + new},
+               "params": {e: reported(e, r, ctx)["params"] for e in have + new},
                "at_bound": [e for e in new if r.at_bound.get(e)], "base": r.phys,
                "warnings": operating_warnings(baseline, preps)}
+    for e in have + new:
+        if not r.identifiable[e][0]:
+            figures["warnings"].append(f"{e}: {unidentified_note(e, r.identifiable[e][1])}; its parameters are not "
+                                       f"reported (the model keeps the fitted values as lumped terms)")
     for e in figures["at_bound"]:
         figures["warnings"].append(f"{e}: at its physical bound; the data want it beyond physics, so it is not this effect")
     for h in (h_before, h_ctrl, h_after):
