@@ -112,7 +112,7 @@ def stream_record(path: str | Path, profile=None, chunk_samples: int = 25_000) -
         if last_t is not None:
             gap = float(chunk.t[0] - last_t)
             if abs(gap - step) > TIME_TOLERANCE * step:
-                raise InputError(f"non-uniform time: step {gap:.9g} s before t = {chunk.t[0]!r}, expected {step:.9g} s",
+                raise InputError(f"non-uniform time: step {gap:.9g} s before t = {float(chunk.t[0]):.9g} s, expected {step:.9g} s",
                                  source=src)
         step = (float(chunk.t[-1] - chunk.t[0]) / (chunk.n - 1)) if step is None else step
         last_t = float(chunk.t[-1])
@@ -188,7 +188,7 @@ def _uniform_step(t: np.ndarray, src: str) -> float:
     bad = dt <= 0
     if bad.any():
         i = int(np.argmax(bad)) + 1
-        raise InputError(f"time is not increasing at sample {i} (t = {t[i]!r} after {t[i - 1]!r})", source=src)
+        raise InputError(f"time is not increasing at sample {i} (t = {float(t[i]):.9g} s after {float(t[i - 1]):.9g} s)", source=src)
     ref = float(np.median(dt))
     bad = np.abs(dt - ref) > TIME_TOLERANCE * ref
     if bad.any():

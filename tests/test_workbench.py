@@ -364,8 +364,9 @@ def test_workflow_compare_explain_add_effect_history(capsys, workflow):
     (d / "m_old.json").write_text(json.dumps(old))
     assert main(["model", "history", str(d / "m2.json")]) == 0
     assert "raw figures" not in capsys.readouterr().out
-    assert main(["model", "history", str(d / "m_old.json")]) == 0
+    assert main(["model", "history", "--model", str(d / "m_old.json")]) == 0  # as the other actions take it
     assert "raw figures: written before" in capsys.readouterr().out
+    assert main(["model", "history"]) == 2 and "--model M" in capsys.readouterr().err
     diag = run_json(capsys, "diagnose", "--model", str(d / "m2.json"), data[0])  # used everywhere a model is
     assert diag["results"][0]["state"] in ("normal", "caution", "warning")
     again = run_json(capsys, "model", "compare", "--model", str(d / "m2.json"), *data)

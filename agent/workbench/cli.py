@@ -163,6 +163,11 @@ def cmd_add_effect(args) -> None:
 def cmd_history(args) -> None:
     from agent.modelfile import load_baseline
 
+    given = {m for m in (args.model, args.model_flag) if m}
+    if len(given) != 1:
+        raise InputError("model history: give one model file (--model M)" if not given else
+                         f"model history: two model files given ({', '.join(sorted(given))}); give one")
+    args.model = given.pop()
     base = load_baseline(args.model)
     versions = [{"version": 0, "effects": [], "note": "baseline (identify)"}] + list(base.history)
     doc = {"model": str(args.model), "effects": list(base.model.meta.get("effects", [])), "versions": versions}
@@ -199,7 +204,8 @@ def add_commands(sub, common) -> None:
     s.add_argument("data", nargs="+", help="healthy records (at least 4, for the thresholds and cluster)")
     s.set_defaults(func=cmd_add_effect)
     s = msub.add_parser("history", parents=[common], help="versions of a model file")
-    s.add_argument("model")
+    s.add_argument("model", nargs="?", help="model file")
+    s.add_argument("--model", dest="model_flag", metavar="MODEL", help="model file, as the other actions take it")
     s.set_defaults(func=cmd_history)
 
 
