@@ -189,6 +189,9 @@ def parse_profile(data: dict, source: str = "<profile>") -> DriveProfile:
     return DriveProfile(name=name, nameplate=plate, **parts)
 
 
+WINDING_TEMP_C = (-60.0, 250.0)  #: C, the range of winding temperatures a nameplate may state
+
+
 def _check_nameplate(n: Nameplate, motor: Motor, source: str) -> None:
     """Nameplate values that contradict each other are an error naming the field."""
     if n.psi_m_wb is not None and n.ke_vrms_per_krpm is not None:
@@ -204,6 +207,11 @@ def _check_nameplate(n: Nameplate, motor: Motor, source: str) -> None:
             key = "psi_m_wb" if n.psi_m_wb is not None else "ke_vrms_per_krpm"
             raise InputError(f"key 'nameplate.{key}' gives psi_m = {psi:.4g} Wb, but the rated torque and current "
                              f"need about {need:.4g} Wb", source=source)
+    for key in ("rs_temp_c", "winding_temp_c"):  # copper's temperature coefficient holds over this range
+        t = getattr(n, key)
+        if t is not None and not WINDING_TEMP_C[0] <= t <= WINDING_TEMP_C[1]:
+            raise InputError(f"key 'nameplate.{key}' = {t:g} C is outside a winding's {WINDING_TEMP_C[0]:g}.."
+                             f"{WINDING_TEMP_C[1]:g} C", source=source)
     for key in ("rs_tol_pct", "psi_m_tol_pct", "l_tol_pct"):
         if not 0 < getattr(n, key) <= 100:
             raise InputError(f"key 'nameplate.{key}' must be within 0..100 %", source=source)

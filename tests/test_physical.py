@@ -136,6 +136,10 @@ def test_nameplate_consistency_names_the_field():
         parse_profile(_profile_doc(rs_ohm=500.0))
     with pytest.raises(InputError, match="nameplate.colour"):
         parse_profile(_profile_doc(colour=1.0))
+    with pytest.raises(InputError, match="nameplate.rs_temp_c. = -400 C is outside"):  # colder than absolute zero
+        parse_profile(_profile_doc(rs_ohm=1.9, rs_temp_c=-400.0))
+    with pytest.raises(InputError, match="nameplate.winding_temp_c"):
+        parse_profile(_profile_doc(rs_ohm=1.9, winding_temp_c=1000.0))
 
 
 def test_nonphysical_estimates_are_named():
