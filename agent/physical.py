@@ -6,7 +6,13 @@ What records say, robustly and independently of any simulator or controller:
 * **steady state** (each record's means; eq. 5 with d/dt = 0):
   v_d = R_s i_d - omega_e L_q i_q and v_q = R_s i_q + omega_e L_d i_d + omega_e psi_m.
   Their standard errors come from 50 ms block means (the ripple is correlated, samples are not
-  independent) plus the voltage channel's accuracy (``V_ACCURACY`` of the reading);
+  independent) plus the voltage channel's accuracy (``V_ACCURACY`` of the reading). The d equation
+  holds in the rotor's frame: an encoder's. A PLL's frame puts the current on +q, which is the
+  rotor's q axis only if the drive holds i_d = 0; under MTPA or field weakening the current leads
+  it by beta and the PLL frame's steady d voltage is -omega_e (L_q cos^2 beta + L_d sin^2 beta) |i|
+  + omega_e psi_m sin beta (motulator's MTPA drive at 80 % load: beta = 7 deg, and the d equation
+  reads L_q = 0.036 H for 0.051 H). The records cannot show beta, so PLL-frame records give L_q
+  through the dynamics alone;
 * **dynamics**: T_s/L_x from the current's sample-to-sample response to the voltage (eq. 6 in the
   ``speed`` form with one intercept per record), least squares compensated for the white noise
   of the channels (levels read off the zero sequences, :func:`zero_sequence_sigma`); its standard
@@ -169,10 +175,12 @@ def _data_residual(obs: list[Observation], dyn: list[tuple[float, float]]):
     i_d, i_q, v_d, v_q, w = m.T
     log_l = np.array([np.log(d[0]) if np.isfinite(d[0]) and d[0] > 0 else np.nan for d in dyn])
     s_l = np.array([d[1] for d in dyn])
+    rotor_d = np.array([float(o.encoder) for o in obs])  # the steady d equation holds in the rotor's frame only
 
     def residual(z):
         rs, ld, lq, psi = np.exp(z)
-        rows = [(v_d - (rs * i_d - w * lq * i_q)) / se[:, 0], (v_q - (rs * i_q + w * ld * i_d + w * psi)) / se[:, 1]]
+        rows = [rotor_d * (v_d - (rs * i_d - w * lq * i_q)) / se[:, 0],
+                (v_q - (rs * i_q + w * ld * i_d + w * psi)) / se[:, 1]]
         dyn_rows = np.where(np.isfinite(log_l) & np.isfinite(s_l), (z[1:3] - np.nan_to_num(log_l)) / s_l, 0.0)
         return np.concatenate(rows + [dyn_rows])
 
@@ -229,6 +237,10 @@ def _collinear_reason(names: list[str], means: np.ndarray, encoder: bool = True)
                 "current; a d-current step, field weakening or PWM ripple in the records reveals it, or give "
                 "nameplate.ld_h")
     if s == {"Lq"}:
+        if not encoder:
+            return ("L_q: too little voltage response on q, and without an encoder the steady d voltage does not "
+                    "read it (the current may lead the q axis: MTPA, field weakening); records with an encoder "
+                    "angle reveal it, or give nameplate.lq_h")
         return ("L_q: too little voltage response on q and too little q current; records under load reveal it, "
                 "or give nameplate.lq_h")
     if s == {"Rs"}:

@@ -196,3 +196,26 @@ def test_identify_on_motulator_reports_unidentifiable_and_writes_intervals(tmp_p
     lo, hi = p["ci95"]["Lq"]
     assert lo <= truth["Lq"] * 1.03 and hi >= truth["Lq"] * 0.97
     assert json.loads(out.read_text())["physical"]["values"]["Lq"] == p["physical"]["Lq"]
+
+
+def test_without_an_encoder_lq_comes_from_the_dynamics_not_the_pll_frames_d_voltage(motulator_one_point):
+    """motulator's drive runs MTPA: the current leads the rotor's q axis by beta, and a PLL's frame,
+    which puts the current on +q, reads the steady d voltage as -omega (L_q cos^2 beta + L_d sin^2
+    beta) |i| + omega psi_m sin beta, 30 % short of L_q here. Identify must not take L_q from it."""
+    prof, paths, _, truth = motulator_one_point
+    recs = [load_record(p, prof) for p in paths]
+    pll = [observe(record_signals(dataclasses.replace(r, theta_e=None, omega_e=None), prof), encoder=False)
+           for r in recs]
+    enc = np.array([observe(record_signals(r, prof)).means for r in recs])
+    beta = np.arctan2(-enc[:, 0], enc[:, 1])  # the current's lead on the rotor's q axis, from the encoder frame
+    i_abs, w = np.hypot(enc[:, 0], enc[:, 1]), enc[:, 4]
+    m = np.array([o.means for o in pll])
+    reading = -m[:, 2] / (m[:, 4] * m[:, 1])  # what the steady d equation takes for L_q in the PLL's frame
+    expect = (truth["Lq"] * np.cos(beta) ** 2 + truth["Ld"] * np.sin(beta) ** 2
+              - truth["psi_m"] * np.sin(beta) / i_abs)
+    assert np.all(beta > 0.05) and reading == pytest.approx(expect, rel=0.03)
+    assert np.all(reading < 0.8 * truth["Lq"])  # so the d equation would be far off
+    est = estimate(pll, prof, priors={})
+    assert est.values["Lq"] == pytest.approx(truth["Lq"], rel=0.1)
+    lo, hi = est.ci95["Lq"]
+    assert lo <= truth["Lq"] <= hi

@@ -15,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from agent.frames import abc_to_dq
-from agent.pll import BW_PER_FN, PLL, ZETA, track
+from agent.pll import BW_PER_FN, PLL, ZETA, input_start, track
 
 FS = 25_000.0
 F_NOM = 100.0
@@ -59,6 +59,22 @@ def test_locks_within_50ms_from_any_phase(f_true, phi0):
     theta, _ = pll.process(three_phase(phi))
     assert lock_time(angle_error(theta, phi), t) < 0.050
     assert pll.locked
+
+
+@pytest.mark.parametrize("phi0", [0.3, 2.0, -2.8])
+def test_a_pll_started_where_the_record_starts_has_no_acquisition_transient(phi0):
+    """Offline records (agent.identify.record_signals): started at the input's own angle and
+    frequency, the angle is right from the first sample; from f_nominal and angle 0 it is not."""
+    t, phi = constant(92.0, 0.2, phi0)
+    x = three_phase(phi)
+    f0, theta0 = input_start(x, FS)
+    assert f0 == pytest.approx(92.0, rel=0.005)
+    assert abs(angle_error(np.array([theta0]), phi[:1])[0]) < 0.01
+    first = t < 0.02
+    started = angle_error(track(x, FS, f0, theta0=theta0)[0], phi)
+    cold = angle_error(track(x, FS, F_NOM)[0], phi)
+    assert np.abs(started[first]).max() < math.radians(1.0) < np.abs(cold[first]).max()
+    assert input_start(np.zeros_like(x), FS) is None  # no phase to start from
 
 
 def test_worst_initial_phase_is_covered():

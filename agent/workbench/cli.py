@@ -11,7 +11,6 @@ import textwrap
 from datetime import datetime, timezone
 from pathlib import Path
 
-from agent.effects import params_text
 from agent.errors import InputError
 
 NOTE_SHARE = 0.01  #: explain's text shows the note of a candidate that explains at least this share
@@ -90,7 +89,7 @@ def cmd_compare(args) -> None:
 
 
 def cmd_explain(args) -> None:
-    from agent.effects import get
+    from agent.effects import get, params_text
     from agent.workbench.explain import explain
 
     candidates = [get(e).id for e in args.effect] if args.effect else None
@@ -123,7 +122,7 @@ def cmd_explain(args) -> None:
 
 def cmd_add_effect(args) -> None:
     from agent.baseline import identify_baseline
-    from agent.effects import get
+    from agent.effects import get, params_text
     from agent.modelfile import save_baseline
     from agent.workbench.explain import add_effects
 
