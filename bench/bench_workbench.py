@@ -83,6 +83,7 @@ class Rig:
 
     name = "rig"
     path = ROOT / "config/profiles/rig_gear.toml"
+    encoder = False  #: its records carry no encoder angle
 
     def __init__(self):
         self.profiles = _variants(self.path, 2.0)  # agent.simulator.rig.RigParams.R_s at 20 C
@@ -112,6 +113,7 @@ class Motulator:
     """bench.thirdparty.motulator_drive (encoder angle; its own controller, inverter and solver)."""
 
     name = "motulator"
+    encoder = True  #: its records carry the encoder angle (the null sets also run without it)
 
     def __init__(self):
         from bench.thirdparty.motulator_drive import PROFILE
@@ -238,15 +240,16 @@ class Bench:
         self.say(f"{self.sim.name} pair {PAIR}: top two {top2}, significant {sig}")
         return {"effects": list(PAIR), "top2": top2, "significant": sig}
 
-    def null(self, n_sets: int, first_seed: int = 5000, step_pct: float = 0.0) -> dict:
+    def null(self, n_sets: int, first_seed: int = 5000, step_pct: float = 0.0, encoder: bool = True) -> dict:
         claims = []
         for j in range(n_sets):
-            recs = self.sim.records({}, NULL_LOADS, self.seconds, first_seed + 10 * j, step_pct=step_pct)
+            recs = self.sim.records({}, NULL_LOADS, self.seconds, first_seed + 10 * j, encoder=encoder,
+                                    step_pct=step_pct)
             doc = self.explain(recs)
             sig = [c["effect"] for c in doc["candidates"] if c["significant"]]
             claims.append(sig)
-            self.say(f"{self.sim.name} null set {j + 1}/{n_sets}{' (load steps)' if step_pct else ''}: "
-                     f"claims {sig or 'nothing'}")
+            self.say(f"{self.sim.name} null set {j + 1}/{n_sets}{' (load steps)' if step_pct else ''}"
+                     f"{'' if encoder else ' (no encoder)'}: claims {sig or 'nothing'}")
         return {"sets": n_sets, "claiming": sum(bool(c) for c in claims), "claims": claims}
 
 
@@ -266,7 +269,7 @@ def judge(doc: dict, effect: str, key: str, true: float) -> dict:
 
 
 def run(sims=("rig", "motulator"), seconds: float = 1.0, n_null: int = 25, effects=None, pair=True,
-        say=print, n_null_step: int = 10) -> dict:
+        say=print, n_null_step: int = 10, n_null_pll: int = 10) -> dict:
     out = {"seconds": seconds, "sims": {}}
     for name in sims:
         sim = Rig() if name == "rig" else Motulator()
@@ -277,6 +280,8 @@ def run(sims=("rig", "motulator"), seconds: float = 1.0, n_null: int = 25, effec
             res["pair"] = b.pair()
         res["null"] = b.null(n_null)
         res["null_step"] = b.null(n_null_step, first_seed=8000, step_pct=STEP_PCT)
+        if sim.encoder:  # and as a drive without one gives them: the PLL's frame (under MTPA, not the rotor's)
+            res["null_pll"] = b.null(n_null_pll, first_seed=9000, encoder=False)
         out["sims"][name] = res
     return out
 
@@ -302,18 +307,19 @@ def table(result: dict) -> str:
             lines.append(f"| {name} | {' + '.join(p['effects'])} | {', '.join(p['top2'])} | "
                          f"{', '.join(p['significant']) or 'none'} | | | |")
     lines.append("")
-    total = sum(r["null"]["sets"] for r in result["sims"].values())
-    claiming = sum(r["null"]["claiming"] for r in result["sims"].values())
-    per = "; ".join(f"{n}: {r['null']['claiming']} of {r['null']['sets']}" for n, r in result["sims"].items())
+
+    def claims(kind: str) -> str:
+        runs = {n: r[kind] for n, r in result["sims"].items() if kind in r}
+        per = "; ".join(f"{n}: {r['claiming']} of {r['sets']}" for n, r in runs.items())
+        return f"{sum(r['claiming'] for r in runs.values())} of {sum(r['sets'] for r in runs.values())} claim an effect ({per})"
+
     lines.append(f"Null sets (no hidden effect, records at {', '.join(f'{x:g}' for x in NULL_LOADS)} % load against "
-                 f"a model at {BASE_LOAD:g} %): {claiming} of {total} claim an effect ({per}); "
-                 f"family-wise level {ALPHA_FW:g} per set.")
+                 f"a model at {BASE_LOAD:g} %): {claims('null')}; family-wise level {ALPHA_FW:g} per set.")
     if all("null_step" in r for r in result["sims"].values()):
-        total = sum(r["null_step"]["sets"] for r in result["sims"].values())
-        claiming = sum(r["null_step"]["claiming"] for r in result["sims"].values())
-        per = "; ".join(f"{n}: {r['null_step']['claiming']} of {r['null_step']['sets']}" for n, r in result["sims"].items())
-        lines.append(f"Null sets with a {STEP_PCT:g} %-point load step a quarter into each record: {claiming} of {total} "
-                     f"claim an effect ({per}).")
+        lines.append(f"Null sets with a {STEP_PCT:g} %-point load step a quarter into each record: {claims('null_step')}.")
+    if any("null_pll" in r for r in result["sims"].values()):
+        lines.append(f"Null sets without the encoder angle (the PLL's frame, which motulator's MTPA drive turns "
+                     f"off the rotor's; the rig's records have no encoder anyway): {claims('null_pll')}.")
     return "\n".join(lines)
 
 
@@ -326,6 +332,8 @@ def main(argv=None) -> int:
                    "magnetic_saturation+nameplate or voltage_delay+load_step (default: all)")
     p.add_argument("--null-steps", type=int, default=10, help="null record sets with load steps per simulator "
                    "(default 10)")
+    p.add_argument("--null-pll", type=int, default=10, help="null record sets without the encoder angle, per "
+                   "simulator whose records have one (default 10)")
     p.add_argument("--no-pair", action="store_true", help="skip the two-effect scenario")
     p.add_argument("--short", action="store_true", help="`make test`'s form: 0.6 s records, 2 null sets")
     a = p.parse_args(argv)
@@ -340,16 +348,16 @@ def main(argv=None) -> int:
             p.error("--sims motulator: motulator is not installed (make setup-test installs it)")
     if not 0.4 <= a.seconds <= 10:
         p.error(f"--seconds: {a.seconds:g} is outside 0.4..10 s (the hold-out needs half of each record)")
-    for flag, n in (("--null", a.null), ("--null-steps", a.null_steps)):
+    for flag, n in (("--null", a.null), ("--null-steps", a.null_steps), ("--null-pll", a.null_pll)):
         if n < 0:
             p.error(f"{flag}: {n} is negative")
     known = scenarios(Rig())
     unknown = [e for e in a.effects.split(",") if e and e not in known]
     if unknown:
         p.error(f"--effects: unknown scenario {unknown[0]!r} (known: {', '.join(known)})")
-    seconds, n_null, n_step = (0.6, 2, 1) if a.short else (a.seconds, a.null, a.null_steps)
+    seconds, n_null, n_step, n_pll = (0.6, 2, 1, 1) if a.short else (a.seconds, a.null, a.null_steps, a.null_pll)
     say = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
-    res = run(sims, seconds, n_null, [e for e in a.effects.split(",") if e] or None, not a.no_pair, say, n_step)
+    res = run(sims, seconds, n_null, [e for e in a.effects.split(",") if e] or None, not a.no_pair, say, n_step, n_pll)
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "workbench.json").write_text(json.dumps(res, indent=1, default=str))
     print(table(res))

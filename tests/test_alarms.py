@@ -514,6 +514,26 @@ def test_a_streams_first_span_gives_the_cluster_point_of_its_record(tmp_path):
         assert point[0] == pytest.approx(want[0], rel=1e-6)
 
 
+def test_a_first_span_reads_the_cluster_point_of_a_running_stream():
+    """The PLL starts where a record or stream starts (agent.pll.input_start): a first span's Ts/Lq is
+    that of the same samples in a stream running before them, where a PLL started at f_nominal and
+    angle 0 read it 2 % low (its acquisition transient)."""
+    from agent.identify import cluster_point, record_signals
+    from agent.model import Signals
+    from agent.pll import track
+
+    prof = profile()
+    rec = sim("healthy", 80.0, 8.0, 300)
+    half = rec.n // 2
+    later = dataclasses.replace(rec, t=rec.t[half:], v_abc=rec.v_abc[:, half:], i_abc=rec.i_abc[:, half:])
+    cold = Signals.from_abc(later.v_abc, later.i_abc, *track(later.i_abc, prof.sampling.rate_hz, prof.rated_fe_hz),
+                            1.0 / prof.sampling.rate_hz, prof.motor.pole_pairs)
+    running, first, cold = (cluster_point(s, prof, "speed", (), None)[0]
+                            for s in (record_signals(rec, prof).slice(half, rec.n), record_signals(later, prof), cold))
+    assert first == pytest.approx(running, rel=2e-4)
+    assert abs(cold / running - 1) > 0.01
+
+
 def test_stopped_drive_is_not_running_never_an_alarm(tmp_path):
     from agent.decision import diagnose
 
