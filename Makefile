@@ -52,8 +52,8 @@ bench-alarms: setup-test
 	$(BIN)/python -m bench.bench_alarms
 
 # the workbench on the project's simulator and on motulator (a third-party one): hidden effects,
-# two at once, 25 null record sets each and 10 with load steps (about 35 min the first time; motulator
-# records are cached)
+# two at once, 25 null record sets each, 10 with load steps and, for motulator, 10 without its encoder
+# angle (about 40 min the first time; motulator records are cached)
 bench-workbench: setup-test
 	$(BIN)/python -m bench.bench_workbench
 
