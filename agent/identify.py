@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from agent.model import BASE_TERMS, DQModel, Signals, Term, lumped_params, regressors, torque_regression
-from agent.pll import input_start, track
+from agent.pll import track
 from agent.profile import DriveProfile
 from agent.records import Record
 from agent.rls import StreamingRLS
@@ -33,14 +33,13 @@ PREFILTER_ORDER = 4
 
 def record_signals(record: Record, profile: DriveProfile) -> Signals:
     """dq signals of a record: angle/speed from its columns when present, else from the PLL on the
-    currents, started where the record starts (:func:`agent.pll.input_start`)."""
+    currents, started where the record starts (:meth:`agent.pll.PLL.reset`)."""
     rate = profile.sampling.rate_hz
     if record.theta_e is not None:
         theta = np.unwrap(record.theta_e)
         omega = record.omega_e if record.omega_e is not None else np.gradient(theta) * rate
     else:
-        f0, theta0 = input_start(record.i_abc, rate) or (profile.rated_fe_hz, 0.0)  # no acquisition transient
-        theta, omega = track(record.i_abc, rate, f0, theta0=theta0)
+        theta, omega = track(record.i_abc, rate, profile.rated_fe_hz, start_at_input=True)  # no acquisition transient
     return Signals.from_abc(record.v_abc, record.i_abc, theta, omega, 1.0 / rate, profile.motor.pole_pairs)
 
 

@@ -48,7 +48,7 @@ from agent.identify import cluster_point, fit_torque, operating_point
 from agent.sanity import not_running
 from agent.library import ModelLibrary
 from agent.model import BASE_TERMS, Signals, input_power, regressors
-from agent.pll import PLL, input_start
+from agent.pll import PLL
 from agent.profile import DriveProfile
 from protocols.base import Block, DriveStatus
 
@@ -150,7 +150,7 @@ class DriveMonitor:
             omega = block.omega_e if block.omega_e is not None else np.gradient(np.unwrap(theta)) * self.rate
         else:
             if self._samples == 0:  # a new stream: the PLL starts where it starts, as offline (record_signals)
-                self.pll.reset(*(input_start(block.i_abc, self.rate) or (None, None)))
+                self.pll.reset(block.i_abc)
             theta, omega = self.pll.process(np.nan_to_num(block.i_abc))
         # continuous angle across blocks (Signals wants it unwrapped); kept below 2^20 rad by
         # shifting the whole buffer by whole turns, which changes no cosine and no difference

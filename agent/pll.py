@@ -52,6 +52,8 @@ BW_PER_FN = math.sqrt(1.0 + 2.0 * ZETA**2 + math.sqrt((1.0 + 2.0 * ZETA**2) ** 2
 LOCK_FILTER_HZ = 50.0
 #: Lock is lost when the filtered phase error exceeds this multiple of ``lock_threshold_rad``.
 UNLOCK_FACTOR = 4.0
+#: Fewest samples from which :func:`input_start` reads where an input starts.
+MIN_START_SAMPLES = 8
 
 
 class PLL:
@@ -85,11 +87,12 @@ class PLL:
         self._clarke = np.ascontiguousarray(CLARKE[:2])
         self.reset()
 
-    def reset(self, f_hz: float | None = None, theta: float | None = None) -> None:
-        """Return to the initial state (unlocked, wide band) at frequency ``f_hz`` (default
-        ``f_nominal_hz``) and angle ``theta`` (default ``theta0``): see :func:`input_start`."""
-        th0 = ((self.theta0 if theta is None else theta) + math.pi) % (2.0 * math.pi) - math.pi
-        f0 = self.f_nominal_hz if f_hz is None else f_hz
+    def reset(self, x_abc=None) -> None:
+        """Return to the initial state (unlocked, wide band): at ``f_nominal_hz`` and ``theta0``, or,
+        given the input about to be processed, where it starts (:func:`input_start`) if it can tell."""
+        start = None if x_abc is None else input_start(x_abc, self.rate_hz)
+        f0, th0 = start or (self.f_nominal_hz, self.theta0)
+        th0 = (th0 + math.pi) % (2.0 * math.pi) - math.pi
         self._state = np.array([th0, 2.0 * math.pi * f0, 0.0, 0.0, 0.0, self._wn_acq])
 
     @property
@@ -109,12 +112,13 @@ class PLL:
 def input_start(x_abc, rate_hz: float, span_s: float = 0.02) -> tuple[float, float] | None:
     """Where a recorded input starts: (frequency in Hz, angle in rad in the PLL's convention, the
     input on +q), from a line through its vector's unwrapped angle over the first ``span_s``; None
-    where the input carries no phase there or does not turn forwards. A PLL started there has no
+    where the input carries no phase there, has fewer than ``MIN_START_SAMPLES`` samples or does
+    not turn forwards. A PLL started there has no
     acquisition transient: started at ``f_nominal_hz`` and angle 0 instead, the first 30-40 ms of a
     record carry angle errors up to 0.8 rad, which a regression over the record reads as a model."""
-    x = np.asarray(x_abc, dtype=float)[:, : max(int(span_s * rate_hz), 8)]
+    x = np.asarray(x_abc, dtype=float)[:, : max(int(span_s * rate_hz), MIN_START_SAMPLES)]
     ab = CLARKE[:2] @ x
-    if not (np.all(np.isfinite(ab)) and np.all(np.hypot(ab[0], ab[1]) > 0)):
+    if x.shape[1] < MIN_START_SAMPLES or not (np.all(np.isfinite(ab)) and np.all(np.hypot(ab[0], ab[1]) > 0)):
         return None
     phi = np.unwrap(np.arctan2(ab[1], ab[0]))
     slope, phi0 = np.polyfit(np.arange(phi.size), phi, 1)
@@ -122,6 +126,10 @@ def input_start(x_abc, rate_hz: float, span_s: float = 0.02) -> tuple[float, flo
     return (f, phi0 - 0.5 * math.pi) if 0.0 < f < rate_hz / 20.0 else None
 
 
-def track(x_abc, rate_hz: float, f_nominal_hz: float, **kw) -> tuple[np.ndarray, np.ndarray]:
-    """Fresh :class:`PLL` over a whole record ``(3, N)``: ``theta_e`` (rad), ``omega_e`` (rad/s)."""
-    return PLL(rate_hz, f_nominal_hz, **kw).process(x_abc)
+def track(x_abc, rate_hz: float, f_nominal_hz: float, start_at_input: bool = False, **kw) -> tuple[np.ndarray, np.ndarray]:
+    """Fresh :class:`PLL` over a whole record ``(3, N)``: ``theta_e`` (rad), ``omega_e`` (rad/s);
+    ``start_at_input``: started where the record starts (:meth:`PLL.reset`)."""
+    pll = PLL(rate_hz, f_nominal_hz, **kw)
+    if start_at_input:
+        pll.reset(x_abc)
+    return pll.process(x_abc)

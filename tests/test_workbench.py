@@ -289,6 +289,13 @@ def test_speed_ripple_reports_the_rotors_ripple_when_the_frame_turns_against_the
     assert rep["frame_angle_share"] == pytest.approx(share, abs=0.02)
 
 
+def test_explain_with_every_candidate_claimed(base80):
+    """Holm rejects every candidate (one asked for, and it is there): nothing is left for the next
+    level in Holm's order, and explain must still answer."""
+    doc = explain(base80, prepare(scenario_records("current_offset", 0.8), GEAR), candidates=["current_offset"])
+    assert [c["effect"] for c in doc["candidates"] if c["significant"]] == ["current_offset"]
+
+
 def test_one_load_saturation_is_reported_not_identifiable(base80):
     recs = [simulate(GEAR, "healthy", 80.0, 1.0, seed=210 + j, effects={"magnetic_saturation": 0.15})
             for j in range(4)]

@@ -204,11 +204,11 @@ def test_records_needed_is_what_the_test_would_need_on_more_records_like_these()
     for n_pairs in range(2, 12):
         assert (ex.block_p(*docs(n_pairs)) < alpha) == (2 * n_pairs >= need), n_pairs
     assert ex.records_needed(*docs(2), 1e-30) is None  # beyond any sensible count: says so
-    note = ex.too_few_note(*docs(2), alpha)
+    note = ex.too_few_note(*docs(2), alpha, ex.block_p(*docs(2)))
     assert f"about {need} records" in note and "with these 4 records" in note
     lo, hi = sorted(1.0 - float(np.mean(x)) for x in pair)
     assert f"{lo:.0%} to {hi:.0%}" in note
-    assert "would not settle it" in ex.too_few_note(*docs(2), 1e-30)
+    assert "would not settle it" in ex.too_few_note(*docs(2), 1e-30, ex.block_p(*docs(2)))
 
 
 def test_block_p_credits_no_model_for_responding_less_to_noise():

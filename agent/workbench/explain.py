@@ -210,12 +210,12 @@ def records_needed(ctrl: dict, cand: dict, alpha: float, most: int = 40) -> int 
     return None
 
 
-def too_few_note(ctrl: dict, cand: dict, alpha: float) -> str:
-    """Why a candidate that explains enough is not significant at ``alpha``, and how many records
-    like these would make it so (:func:`records_needed`)."""
+def too_few_note(ctrl: dict, cand: dict, alpha: float, p: float) -> str:
+    """Why a candidate that explains enough is not significant at ``alpha`` (its :func:`block_p`
+    is ``p``), and how many records like these would make it so (:func:`records_needed`)."""
     shares = [float(np.mean(x)) for x in _block_shares(ctrl, cand)]
     more = records_needed(ctrl, cand, alpha)
-    return (f"not significant with these {len(shares)} records (p = {block_p(ctrl, cand):.2g}, Holm needs < "
+    return (f"not significant with these {len(shares)} records (p = {p:.2g}, Holm needs < "
             f"{alpha:.2g}): its share of the error is {min(shares):.0%} to {max(shares):.0%} between records; "
             + (f"about {more} records like these would settle it if it is as large as measured" if more else
                "more records like these would not settle it"))
@@ -329,13 +329,13 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
             row["note"] = h["note"]
         rows.append(row)
     reject = holm(p_values, ALPHA)
-    level = ALPHA / (len(p_values) - sum(reject)) if p_values else ALPHA  # what the next in Holm's order needs
+    level = ALPHA / max(len(p_values) - sum(reject), 1)  # what the next in Holm's order needs
     for row, rej in zip(rows, reject):
         row["significant"] = bool(rej and _claimable(row))
     _forward(rows, dict(zip(candidates, fits)), preps, base, prior)
     for row, h in zip(rows, held):
         if not row["significant"] and _claimable(row) and row["p_value"] < 1.0:
-            row["note"] = "; ".join(filter(None, [row.get("note"), too_few_note(h_ctrl, h, level)]))
+            row["note"] = "; ".join(filter(None, [row.get("note"), too_few_note(h_ctrl, h, level, row["p_value"])]))
     rows.sort(key=lambda r: (r["significant"], r["explained_fraction"] if r["explained_fraction"] is not None
                              else -np.inf), reverse=True)
     doc = {"nrmse_before": _total(before), "nrmse_control": _total(h_ctrl),
