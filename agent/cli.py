@@ -116,6 +116,8 @@ def cmd_identify(args) -> None:
     from agent.profile import load_profile
 
     profile = load_profile(args.profile)
+    if Path(args.out).exists() and not args.replace:
+        raise InputError(f"--out {args.out}: exists; a model is never overwritten (choose a new file, or --replace)")
     if len(args.data) < 4:
         raise InputError(f"identify needs at least 4 healthy records (the parameter cluster's region), got "
                          f"{len(args.data)}")
@@ -130,7 +132,7 @@ def cmd_identify(args) -> None:
                          f"(check the records and the profile's [nameplate]; --force writes it anyway, marked)")
     if phys["problems"]:
         base.model.meta["forced"] = phys["problems"]
-    save_baseline(base, args.out)
+    save_baseline(base, args.out, replace=args.replace)
     m = base.model
     names_d, names_q = (tuple(t.name for t in ts) for ts in m.terms)
     params = {"d": dict(zip(names_d, m.theta_d.tolist())), "q": dict(zip(names_q, m.theta_q.tolist())),
@@ -157,12 +159,20 @@ def cmd_identify(args) -> None:
         f"baseline from {len(recs)} records -> {args.out}" + (" (FORCED: nonphysical)" if phys["problems"] else "") + "\n"
         f"operating point: fe {doc['operating_point']['fe_hz']:.2f} Hz, load {doc['operating_point']['load_pct']:.1f} %\n"
         "physical parameters:\n" + "\n".join(lines) + "\n"
+        + (f"lumped model pulled back to the nearest plausible values ({params['constrained']})\n"
+           if params["constrained"] else "") +
         f"cluster centre: Ts/Lq {params['ts_over_lq']:.4e}, B_GT {params['b_gt']:.5f} N m s/rad\n"
         f"alarm evidence: {doc['alarm']['stretches']} independent stretches; one-window (gross) alarms above "
-        f"window z {doc['alarm']['gross_threshold_z'][0]:.1f}-{doc['alarm']['gross_threshold_z'][1]:.1f}"
+        f"window z {_span(*doc['alarm']['gross_threshold_z'])}"
         + ("" if doc["alarm"]["stretches"] >= FULL_EVIDENCE_STRETCHES else
            f" (few stretches widen it: the agent's commissioning, {FULL_EVIDENCE_STRETCHES} stretches of 30 s, "
            "gives about 6)")))
+
+
+def _span(lo: float, hi: float) -> str:
+    """'lo-hi', or one figure when both print alike."""
+    a, b = f"{lo:.1f}", f"{hi:.1f}"
+    return a if a == b else f"{a}-{b}"
 
 
 def _alarm_evidence(base) -> dict:
@@ -252,7 +262,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("identify", parents=[common], help="learn a healthy baseline from records (Algs. 2-4)")
     s.add_argument("--profile", required=True)
-    s.add_argument("--out", required=True, help="model file to write (JSON)")
+    s.add_argument("--out", required=True, help="model file to write (JSON); an existing one is kept unless --replace")
+    s.add_argument("--replace", action="store_true", help="overwrite --out if it exists (its history goes with it)")
     s.add_argument("--form", choices=("lumped", "speed"), default="lumped",
                    help="regression form: paper eqs. 13-14 (lumped) or omega_e as a regressor (speed)")
     s.add_argument("--robust", action="store_true", help="median/MAD instead of mean/std")

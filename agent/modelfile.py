@@ -102,9 +102,9 @@ def effect_terms(effects: list, source: str):
         raise InputError(str(err), source=source) from None
 
 
-def save_baseline(b: Baseline, path: str | Path) -> Path:
-    """Write ``b`` to ``path`` atomically."""
-    return write_atomic(path, json.dumps(baseline_to_json(b), indent=1).encode())
+def save_baseline(b: Baseline, path: str | Path, replace: bool = True) -> Path:
+    """Write ``b`` to ``path`` atomically; with ``replace`` False an existing file is an InputError."""
+    return write_atomic(path, json.dumps(baseline_to_json(b), indent=1).encode(), replace)
 
 
 def load_baseline(path: str | Path) -> Baseline:
@@ -118,8 +118,10 @@ def load_baseline(path: str | Path) -> Baseline:
     return baseline_from_json(doc, source=str(path))
 
 
-def write_atomic(path: str | Path, data: bytes) -> Path:
-    """Write ``data`` to ``path`` via a temporary file in the same folder, fsync and rename."""
+def write_atomic(path: str | Path, data: bytes, replace: bool = True) -> Path:
+    """Write ``data`` to ``path`` via a temporary file in the same folder, fsync and rename. With
+    ``replace`` False the rename is a hard link, which fails if ``path`` exists (InputError), so a
+    file that appeared while the caller worked is kept too."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
@@ -128,7 +130,15 @@ def write_atomic(path: str | Path, data: bytes) -> Path:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
-        os.replace(tmp, path)
+        if replace:
+            os.replace(tmp, path)
+        else:
+            os.link(tmp, path)
+            os.unlink(tmp)
+    except FileExistsError:
+        Path(tmp).unlink(missing_ok=True)
+        raise InputError("exists; a model version is never overwritten (choose a new file)",
+                         source=str(path)) from None
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise

@@ -141,6 +141,17 @@ def test_write_atomic_keeps_the_old_file_when_writing_fails(tmp_path, monkeypatc
     assert [p.name for p in tmp_path.iterdir()] == ["m.json"]
 
 
+def test_write_atomic_without_replace_keeps_a_file_that_appeared_meanwhile(tmp_path):
+    """A model version is never overwritten, even one written while the caller was refitting."""
+    path = tmp_path / "m.json"
+    write_atomic(path, b"v1", replace=False)
+    with pytest.raises(InputError, match="never overwritten"):
+        write_atomic(path, b"v2", replace=False)
+    assert path.read_bytes() == b"v1" and [p.name for p in tmp_path.iterdir()] == ["m.json"]
+    write_atomic(path, b"v3")  # the library's own files are replaced
+    assert path.read_bytes() == b"v3"
+
+
 def test_too_few_records():
     with pytest.raises(ValueError, match="at least 4"):
         identify_baseline([simulate(GEAR, seconds=0.5, seed=1)] * 3, GEAR, window_s=0.2)

@@ -142,6 +142,18 @@ def test_nameplate_consistency_names_the_field():
         parse_profile(_profile_doc(rs_ohm=1.9, winding_temp_c=1000.0))
 
 
+def test_inconsistent_nameplate_is_exit_2_naming_the_field(tmp_path, capsys):
+    from agent.cli import main
+
+    doc = (ROOT / "config/profiles/rig_gear.toml").read_text()
+    prof = tmp_path / "p.toml"
+    prof.write_text(doc + "\n[nameplate]\npsi_m_wb = 0.46\nke_vrms_per_krpm = 20.0\n")
+    assert main(["identify", "--profile", str(prof), "--out", str(tmp_path / "m.json"), "r.npz"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "p.toml" in err[0] and "nameplate.psi_m_wb" in err[0], err
+    assert not (tmp_path / "m.json").exists()
+
+
 def test_nonphysical_estimates_are_named():
     """psi_m ~ 0 with current flowing, and an R_s that would drop most of the voltage."""
     prof = parse_profile(_profile_doc())
@@ -153,6 +165,35 @@ def test_nonphysical_estimates_are_named():
            for j in range(3)]
     est = estimate(obs, prof, {"Rs": Prior(2.0, 0.05, "test")})
     assert any("psi_m" in p and "magnet flux cannot be that small" in p for p in est.problems), est.problems
+
+
+def _means(rs, ld, lq, psi, i_q=10.0, w=600.0):
+    """One steady operating point (i_d, i_q, v_d, v_q, omega_e) of a motor with these values, i_d = 0."""
+    return np.array([[0.0, i_q, -w * lq * i_q, w * psi + rs * i_q, w]])
+
+
+@pytest.mark.parametrize("values, w, rule", [
+    ((2.0, 0.02, 0.02, 0.5), 600.0, None),  # a physical motor: nothing to say
+    ((2.0, 5.0, 0.02, 0.5), 600.0, "Ld/Rs = 2.5 s is outside"),
+    ((2.0, 0.02, 2e-5, 0.5), 600.0, "Lq/Rs = 1e-05 s is outside"),
+    ((2.0, 0.02, 0.02, 0.001), 600.0, "magnet flux cannot be that small"),
+    ((5.0, 0.02, 0.02, 0.5), 100.0, "would drop"),
+    ((0.01, 1e-4, 1e-4, 0.5), 600.0, "outside 0.001..0.5 of the nameplate impedance"),
+])
+def test_each_nonphysical_rule_names_its_parameter(values, w, rule):
+    """Each refusal rule of identify, alone: time constants, magnet flux, resistive drop, base impedance
+    (33 ohm for this profile)."""
+    from agent.physical import _problems
+
+    prof = parse_profile(_profile_doc())
+    z = np.log(np.array(values))
+    truth = dict(zip(("rs", "ld", "lq", "psi"), (2.0, 0.02, 0.02, 0.5)))
+    means = _means(truth["rs"], truth["ld"], truth["lq"], truth["psi"], w=w)  # what the records showed
+    out = _problems(z, z, np.ones(4), {}, means, prof)
+    if rule is None:
+        assert out == []
+    else:
+        assert len(out) == 1 and rule in out[0], out
 
 
 def test_identify_refuses_conflicting_nameplate_and_force_marks(tmp_path, rig_records_80):

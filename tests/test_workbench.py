@@ -359,6 +359,7 @@ def test_workflow_compare_explain_add_effect_history(capsys, workflow):
     add = run_json(capsys, "model", "add-effect", "--model", model, "--effect", "current_offset",
                    "--out", str(d / "m2.json"), *data)
     assert add["model"] == str(d / "m2.json") and add["effect"] == "current_offset"
+    assert all(any("far from the model's" in w for w in doc["warnings"]) for doc in (comp, expl, add))
     assert add["nrmse_after"] < 0.6 * add["nrmse_control"] < add["nrmse_before"]
     assert add["params"]["current_offset"]["offset_A"] == pytest.approx(0.1, rel=0.2)
     hist = run_json(capsys, "model", "history", str(d / "m2.json"))
@@ -378,6 +379,18 @@ def test_workflow_compare_explain_add_effect_history(capsys, workflow):
     assert diag["results"][0]["state"] in ("normal", "caution", "warning")
     again = run_json(capsys, "model", "compare", "--model", str(d / "m2.json"), *data)
     assert again["nrmse"]["total"] < comp["nrmse"]["total"]
+    # several models: each one's figure over the whole set, the same as compared alone, in the report too
+    (d / "other").mkdir(exist_ok=True)
+    same_stem = str(d / "other" / "m.json")
+    (d / "other" / "m.json").write_bytes((d / "m2.json").read_bytes())
+    both = run_json(capsys, "model", "compare", "--model", model, "--model", same_stem, *data,
+                    "--report", str(d / "two"))
+    assert both["models"] == {model: comp["nrmse"]["total"], same_stem: again["nrmse"]["total"]}
+    assert all(set(r["nrmse"]) == {model, same_stem} for r in both["table"])
+    page = (d / "two" / "index.html").read_text()
+    assert f"<td>{100 * again['nrmse']['total']:.4g}</td>" in page and f"<td>{100 * comp['nrmse']['total']:.4g}</td>" in page
+    assert main(["model", "compare", "--model", model, "--model", model, *data]) == 2
+    assert f"--model {model}: given twice" in capsys.readouterr().err
 
 
 def test_bad_input_exits_2(capsys, workflow):

@@ -131,6 +131,22 @@ def test_effect_at_its_bound_is_never_significant(base80):
     assert "at bound" in row["note"]
 
 
+@pytest.mark.parametrize("effect, value, key", [
+    ("current_offset", 1.0, "offset_A"),  # 15 % of the rated 6.6 A; the bound is a sensor class's 5 %
+    ("current_gain_mismatch", 0.3, "gain_b"),  # 30 % against a class limit of 10 %
+])
+def test_an_effect_beyond_its_sensor_class_is_at_bound_not_significant(base80, effect, value, key):
+    """A sensor error three times its class limit: the refit stops at the limit, and explain says
+    "at bound" instead of claiming a value physics does not allow."""
+    recs = [simulate(GEAR, "healthy", (60.0, 100.0)[j % 2], 1.0, seed=840 + j, effects={effect: value})
+            for j in range(4)]
+    doc = ex.explain(base80, prepare(recs, GEAR), candidates=[effect, "voltage_delay"])
+    row = next(c for c in doc["candidates"] if c["effect"] == effect)
+    assert row["at_bound"] and not row["significant"] and "at bound" in row["note"], row
+    fitted = {**row["params"], **row.get("unpinned_params", {})}[key]
+    assert abs(fitted) < 0.6 * value  # held at the limit (a vector at its corners for the offset), not the value
+
+
 def test_second_hidden_effect_is_claimed_given_the_first(base80):
     """Offset and delay hidden together at 60 and 100 % load: the delay is significant on its own;
     the offset's share varies with the load against a control that still lacks the delay, so it

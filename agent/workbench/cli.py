@@ -58,9 +58,12 @@ def cmd_compare(args) -> None:
     from agent.workbench.compare import compare
     from agent.workbench.explain import explain, operating_warnings
 
+    twice = next((m for j, m in enumerate(args.model) if m in args.model[:j]), None)
+    if twice is not None:
+        raise InputError(f"--model {twice}: given twice")
     base, _, preps = _load(args, args.model[0])
-    others = {Path(m).stem: load_baseline(m) for m in args.model[1:]}
-    doc, data = compare(base, preps, one_step=args.one_step, others=others)
+    others = {m: load_baseline(m) for m in args.model[1:]}
+    doc, data = compare(base, preps, one_step=args.one_step, others=others, name=args.model[0])
     doc["model"] = args.model[0]
     doc["warnings"] = operating_warnings(base, preps)
     _warn(doc)
@@ -81,6 +84,8 @@ def cmd_compare(args) -> None:
     lines.append(f"records cover load {cov['load_pct_range'][0]:.0f}-{cov['load_pct_range'][1]:.0f} %, fe "
                  f"{cov['fe_hz_range'][0]:.1f}-{cov['fe_hz_range'][1]:.1f} Hz; the model's operating point: load "
                  f"{cov['model']['load_pct']:.0f} %, fe {cov['model']['fe_hz']:.1f} Hz")
+    if len(doc["models"]) > 1:
+        lines += ["whole record set, held-out free-run NRMSE:"] + [f"  {k}: {_pct(v)}" for k, v in doc["models"].items()]
     lines += [f"  fe {r['fe_hz']:.1f} Hz load {r['load_pct']:.0f} %: "
               + ", ".join(f"{k} {_pct(v)}" for k, v in r["nrmse"].items()) for r in doc["table"]]
     lines += ["where: " + (w.get("summary") or f"{w['freq_hz']:.1f} Hz {w['label']}") for w in doc["where"]]
@@ -146,7 +151,7 @@ def cmd_add_effect(args) -> None:
              "nrmse_basis": NRMSE_BASIS,
              "records": [r.source for r in recs], "timestamp": datetime.now(timezone.utc).isoformat(timespec="seconds")}
     new.history = list(base.history) + [entry]
-    save_baseline(new, args.out)
+    save_baseline(new, args.out, replace=False)
     doc = {"model": str(args.out), "effect": effects[0] if len(effects) == 1 else effects,
            "nrmse_before": fig["nrmse_before"], "nrmse_after": fig["nrmse_after"],
            "nrmse_control": fig["nrmse_control"], "params": fig["params"], "base": fig["base"],

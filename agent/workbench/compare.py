@@ -168,8 +168,12 @@ def where(baseline, preps: list[Prepared], preds: list[np.ndarray]) -> tuple[lis
     return found, data
 
 
-def compare(baseline, preps: list[Prepared], one_step: bool = False, others: dict | None = None) -> tuple[dict, dict]:
-    """The CONTRACT document of ``model compare`` (free-run unless ``one_step``) and plot data."""
+def compare(baseline, preps: list[Prepared], one_step: bool = False, others: dict | None = None,
+            name: str = "model") -> tuple[dict, dict]:
+    """The CONTRACT document of ``model compare`` (free-run unless ``one_step``) and plot data;
+    ``others`` ({name: baseline}) are compared on the same records under their names, ``name``
+    being the first model's: ``models`` holds each one's held-out free-run NRMSE (total) over the
+    whole record set, ``table`` per operating point."""
     model = baseline.model
     figs = figures(model, preps)
     mode = "one_step" if one_step else "free_run"
@@ -181,13 +185,16 @@ def compare(baseline, preps: list[Prepared], one_step: bool = False, others: dic
     doc = {"nrmse": figs[mode]["nrmse"], "fit_pct": figs[mode]["fit_pct"], "mode": mode,
            "noise_floor": figs["free_run"]["noise_floor"],
            "modes": {k: figs[k] for k in ("free_run", "one_step")}, "stable": figs["stable"], "where": found,
-           "table": table({"model": baseline, **(others or {})}, preps), "coverage": coverage(baseline, preps),
+           "table": table({name: baseline, **(others or {})}, preps), "coverage": coverage(baseline, preps),
            "records": [p.source for p in preps]}
+    free_total = figs["free_run"]["nrmse"]
+    doc["models"] = {name: None if free_total is None else free_total["total"],
+                     **{n: _total(b.model, preps) for n, b in (others or {}).items()}}
     if not figs["stable"]:
         doc["note"] = figs["note"]
-    data["traces"] = [(preps[0].sig, shown[0])]
-    for name, b in (others or {}).items():
+    data["traces"] = [(preps[0].sig, shown[0], name)]
+    for other, b in (others or {}).items():
         with np.errstate(all="ignore"):
-            data["traces"].append((preps[0].sig, flux_adapted(b.model, preps[0]), name))
+            data["traces"].append((preps[0].sig, flux_adapted(b.model, preps[0]), other))
     data["split"] = preps[0].split
     return doc, data

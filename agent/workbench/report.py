@@ -51,7 +51,7 @@ def _plots(data: dict, ranking: dict | None, out: Path) -> list[tuple[str, str]]
         ax[k].set_ylabel(f"{name} (A)")
     ax[2].plot(t, sig.i_abc[0, cut], lw=1.2, color="black", label="measured")
     for j, trace in enumerate(data["traces"]):
-        y, name = trace[1], (trace[2] if len(trace) > 2 else "model")
+        y, name = trace[1], Path(trace[2]).name
         for k in (0, 1):
             ax[k].plot(t, y[k, cut], lw=0.8, ls=("-", "--", ":", "-.")[j % 4], label=f"{name} (free run)")
         ax[2].plot(t, dq_to_abc(y[:, cut], sig.theta_e[cut])[0], lw=0.8, ls=("-", "--", ":", "-.")[j % 4],
@@ -154,6 +154,9 @@ def write_report(out_dir, title: str, doc: dict, data: dict, ranking: dict | Non
         fit += (f"<p>Free run: the error beyond the channels' noise floor ({100 * doc['noise_floor']['total']:.3f} % total, "
                 "which no model removes); the one-step figure is raw.</p>")
     models = list(doc["table"][0]["nrmse"]) if doc["table"] else []
+    if len(doc.get("models", {})) > 1:
+        fit += "<h3>Every model on the whole record set (held-out free run)</h3>" + _table(
+            [[k, _pct(v)] for k, v in doc["models"].items()], ["model", "NRMSE total %"])
     t5 = _table([[r["fe_hz"], r["load_pct"], r["records"], *(_pct(r["nrmse"][k]) for k in models)]
                  for r in doc["table"]], ["fe (Hz)", "load (%)", "records", *(f"{k}: NRMSE %" for k in models)])
     where = "".join(f"<li>{html.escape(w.get('summary') or w['label'] + ' at %.1f Hz' % w['freq_hz'])}"
