@@ -12,7 +12,7 @@ headline parameter's error (target <= 20 %). Null sets (no hidden effect, four r
 values are injected in both simulators in the same units; nothing is tuned to either.
 
 Writes the markdown of docs/benchmarks.md ("Workbench on two simulators") to stdout and the
-figures to bench/results/workbench.json. motulator records are cached (bench/results).
+figures to bench/results/workbench.json (workbench_<S>s.json for another --seconds). motulator records are cached (bench/results).
 """
 
 from __future__ import annotations
@@ -359,7 +359,8 @@ def main(argv=None) -> int:
     say = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
     res = run(sims, seconds, n_null, [e for e in a.effects.split(",") if e] or None, not a.no_pair, say, n_step, n_pll)
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "workbench.json").write_text(json.dumps(res, indent=1, default=str))
+    name = "workbench" if seconds == 1.0 else f"workbench_{seconds:g}s"
+    (RESULTS / f"{name}.json").write_text(json.dumps(res, indent=1, default=str))
     print(table(res))
     return 0
 

@@ -253,16 +253,18 @@ def test_bench_workbench_short_form_rig():
 
 @pytest.mark.slow
 def test_bench_workbench_short_form_motulator():
-    """The same on motulator's records: what holds today. Its null sets and effect recovery are
-    tracked by `make bench-workbench` (docs/benchmarks.md); no claim is ever at a bound."""
+    """The same on motulator's records: a null set claims nothing, the hidden offset is first,
+    significant, not at a bound, at least 2x better than a wrong effect and within 20 %. The rest
+    is tracked by `make bench-workbench` (docs/benchmarks.md)."""
     pytest.importorskip("motulator")
     from bench.bench_workbench import Bench, Motulator, scenarios
 
     b = Bench(Motulator(), 0.6, say=lambda s: None)
+    assert b.null(1, first_seed=9100)["claiming"] == 0
     sc = scenarios(b.sim)["current_offset"]
     row = b.scenario("current_offset", sc)
-    assert row["rank"] == 1 and row["significant"]
-    assert not row["bound"]
+    assert row["rank"] == 1 and row["significant"] and not row["bound"]
+    assert row["gain"] >= 2 and abs(row["error"]) <= 0.2
 
 
 @pytest.mark.slow
@@ -294,6 +296,25 @@ def test_a_delay_at_constant_speed_is_revealed_by_the_load_step_explain_names():
     b = Bench(Motulator(), 1.0, say=lambda s: None)
     row = b.scenario("voltage_delay+load_step", scenarios(b.sim)["voltage_delay+load_step"])
     assert row["rank"] == 1 and row["significant"] and abs(row["error"]) <= 0.2
+
+
+def test_a_step_late_in_a_long_record_is_fitted_not_only_held_out(base80):
+    """A load step 1.5 s into 2 s records: the fit segment moves to hold it (a quarter in), so the
+    step separates the delay from the lumped R and L; fitted on the steady start alone, the refit
+    would only extrapolate across it. Steady records keep the fit segment at their start."""
+    eff = {"voltage_delay": 1.0}
+    recs = [simulate(GEAR, "healthy", load, 2.0, seed=860 + j, effects=eff, load_step=(1.5, load + 10.0))
+            for j, load in enumerate((60.0, 90.0, 60.0, 90.0))]
+    preps = prepare(recs, GEAR)
+    for p in preps:
+        step_at = int(round(1.5 / p.sig.ts)) - (recs[0].t.size - p.sig.n)  # the PLL's lock-in is cut
+        assert p.start < step_at < p.split and (step_at - p.start) == pytest.approx((p.split - p.start) / 4, rel=0.2)
+    assert prepare([simulate(GEAR, "healthy", 60.0, 2.0, seed=870)], GEAR)[0].start == 0
+    doc = ex.explain(base80, preps)
+    top = doc["candidates"][0]
+    assert top["effect"] == "voltage_delay" and top["significant"]
+    assert top["params"]["delay_samples"] == pytest.approx(1.0, rel=0.1)
+    assert top["nrmse_after"] < 0.3 * doc["nrmse_control"]
 
 
 @pytest.mark.parametrize("w_ts", [0.025, 0.05])

@@ -32,8 +32,9 @@ record's psi_m stays near it, and R_s,d is the free run's where i_d varies betwe
 the nameplate's where there is one. Effects the one-step regression cannot pin down go to the
 free run. docs/workbench.md ("How it judges a model") gives the reasons and figures.
 
-Hold-out: each record is split in time; the fit uses its first ``FIT_FRACTION`` (at most
-``max_fit_s`` seconds), the error is measured on the rest, from a free run over the whole record
+Hold-out: each record is split in time; the fit uses ``FIT_FRACTION`` of it (at most
+``max_fit_s`` seconds), from its start or, where the operating point moves, around the largest
+change (:func:`fit_start`); the error is measured on the rest, from a free run over the whole record
 (the free run forgets its start within a few L/R time constants, ~10 ms) with the record's psi_m
 set on its fit segment (:func:`flux_adapted`). Records whose angle comes from the PLL lose their
 first ``SETTLE_S`` (the PLL's lock-in).
@@ -62,6 +63,7 @@ from agent.records import Record
 
 SETTLE_S = 0.1  #: s dropped at the start of records whose angle comes from the PLL
 FIT_FRACTION = 0.5  #: share of each record used for fitting; the rest is held out
+MOVE_CUTOFF_HZ, MOVE_MIN = 5.0, 0.05  #: an operating point moves when its 5 Hz low-pass spans 5 % (:func:`fit_start`)
 BLOCK_S = 0.1  #: s, block length of the held-out significance test
 FRAME_CUTOFF = 0.5  #: the workbench's angle follows the current vector below this fraction of fe
 L_MAX_H = 10.0  #: H, the inductance taken when the one-step regression sees no response to the voltage
@@ -83,16 +85,20 @@ class Prepared:
     source: str
     sig: Signals
     op: dict
-    split: int  #: first held-out sample
+    split: int  #: first sample after the fit segment
     meta: dict = field(default_factory=dict)
+    start: int = 0  #: first sample of the fit segment (:func:`fit_start`)
 
     @property
     def fit_slice(self) -> slice:
-        return slice(0, self.split)
+        return slice(self.start, self.split)
 
     @property
-    def eval_slice(self) -> slice:
-        return slice(self.split, self.sig.n)
+    def eval_slice(self) -> slice | np.ndarray:
+        """The held-out samples: all but the fit segment (a slice when it starts the record)."""
+        if self.start == 0:
+            return slice(self.split, self.sig.n)
+        return np.r_[0:self.start, self.split:self.sig.n]
 
     @cached_property
     def noise_var(self) -> tuple[float, float]:
@@ -113,9 +119,31 @@ def prepare(records: list[Record], profile: DriveProfile, max_fit_s: float = 0.5
             raise InputError(f"{idle}: nothing to compare a model with", source=rec.source)
         if rec.theta_e is None:
             sig = follow_current(sig, rec).slice(int(SETTLE_S * rate), sig.n)
-        split = min(int(FIT_FRACTION * sig.n), int(max_fit_s * rate))
-        out.append(Prepared(rec.source, sig, operating_point(sig, profile), split, dict(rec.meta)))
+        length = min(int(FIT_FRACTION * sig.n), int(max_fit_s * rate))
+        start = fit_start(sig, length)
+        out.append(Prepared(rec.source, sig, operating_point(sig, profile), start + length, dict(rec.meta), start))
     return out
+
+
+def fit_start(sig: Signals, length: int) -> int:
+    """First sample of a record's fit segment of ``length`` samples: 0, unless the operating point
+    moves within the record (the current magnitude or the speed, low-passed at ``MOVE_CUTOFF_HZ``,
+    spans more than ``MOVE_MIN`` of its mean), then the segment holds the largest change a quarter
+    into it. A step is what separates effects that a steady operating point lumps into R and L
+    (explain names it as what reveals them); past the fit segment it would only be extrapolated."""
+    if sig.n <= length or sig.n < 64:
+        return 0
+    sos = butter(2, MOVE_CUTOFF_HZ * 2 * sig.ts, output="sos")
+    moved = []
+    for x in (np.hypot(*sig.i_dq), sig.omega_e):
+        lp = sosfiltfilt(sos, x)
+        ref = max(float(np.mean(np.abs(lp))), 1e-12)
+        if np.ptp(lp) > MOVE_MIN * ref:
+            moved.append(np.abs(np.diff(lp)) / ref)
+    if not moved:
+        return 0
+    at = int(np.argmax(np.max(moved, axis=0)))
+    return int(np.clip(at - length // 4, 0, sig.n - length))
 
 
 def follow_current(sig: Signals, rec: Record) -> Signals:
@@ -232,7 +260,7 @@ def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None) -
     outs = [e for e in map(get_effect, effect_ids) if e.kind == "output"]
     terms_v = [e.terms() for e in effs]
     n_rec, n_out = len(preps), sum(len(e.params) for e in outs)
-    segs = [p.sig.slice(0, p.split) for p in preps]
+    segs = [p.sig.slice(p.start, p.split) for p in preps]
     noise = [noise_signals(s) for s in segs]
     coef = [(1.0, 0.0), (1.0, 0.0)]  # the state matrix's rows (own, cross x omega) behind the output columns
     for _ in range(2 if outs else 1):
