@@ -126,6 +126,9 @@ class Prior:
     source: str
 
 
+COPPER_T0_C = 234.5  #: C, copper's inferred zero-resistance temperature: R(T) ~ T + 234.5 (alpha_20 = 0.00393/K)
+
+
 def nameplate_priors(profile: DriveProfile) -> dict[str, Prior]:
     """Priors from the profile's ``[nameplate]`` (see :class:`agent.profile.Nameplate`)."""
     n = profile.nameplate
@@ -134,7 +137,7 @@ def nameplate_priors(profile: DriveProfile) -> dict[str, Prior]:
     out = {}
     if n.rs_ohm is not None:
         t_op = n.rs_temp_c if n.winding_temp_c is None else n.winding_temp_c
-        out["Rs"] = Prior(n.rs_ohm * (1 + 0.00393 * (t_op - n.rs_temp_c)), n.rs_tol_pct / 100,
+        out["Rs"] = Prior(n.rs_ohm * (COPPER_T0_C + t_op) / (COPPER_T0_C + n.rs_temp_c), n.rs_tol_pct / 100,
                           f"nameplate.rs_ohm ({n.rs_ohm:g} ohm at {n.rs_temp_c:g} C, winding at {t_op:g} C)")
     psi = n.psi_m(profile.motor.pole_pairs)
     if psi is not None:

@@ -154,6 +154,18 @@ def test_inconsistent_nameplate_is_exit_2_naming_the_field(tmp_path, capsys):
     assert not (tmp_path / "m.json").exists()
 
 
+def test_nameplate_resistance_is_taken_to_the_winding_temperature():
+    """Copper: R(T) = R(T0) (234.5 + T) / (234.5 + T0), i.e. alpha_20 = 0.00393/K; a DC measurement
+    at 20 C read at an 80 C winding, and the same resistance measured warm, agree."""
+    from agent.physical import nameplate_priors
+
+    warm = nameplate_priors(parse_profile(_profile_doc(rs_ohm=2.0, rs_temp_c=20.0, winding_temp_c=80.0)))["Rs"]
+    assert warm.value == pytest.approx(2.0 * (1 + 0.00393 * 60), rel=1e-3)
+    back = nameplate_priors(parse_profile(_profile_doc(rs_ohm=warm.value, rs_temp_c=80.0, winding_temp_c=20.0)))["Rs"]
+    assert back.value == pytest.approx(2.0, rel=1e-12)
+    assert nameplate_priors(parse_profile(_profile_doc(rs_ohm=2.0)))["Rs"].value == 2.0  # no winding temperature given
+
+
 def test_nonphysical_estimates_are_named():
     """psi_m ~ 0 with current flowing, and an R_s that would drop most of the voltage."""
     prof = parse_profile(_profile_doc())
