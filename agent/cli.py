@@ -110,14 +110,23 @@ def cmd_frequencies(args) -> None:
     _emit(args, doc, "\n".join(lines))
 
 
+def _has_versions(path: str) -> bool:
+    """Whether ``path`` is a model file that ``model add-effect`` wrote (its history has versions)."""
+    try:
+        return bool(json.loads(Path(path).read_bytes()).get("history"))
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
 def cmd_identify(args) -> None:
     from agent.baseline import identify_baseline
     from agent.modelfile import save_baseline
     from agent.profile import load_profile
 
     profile = load_profile(args.profile)
-    if Path(args.out).exists() and not args.replace:
-        raise InputError(f"--out {args.out}: exists; a model is never overwritten (choose a new file, or --replace)")
+    if not args.replace and _has_versions(args.out):
+        raise InputError(f"--out {args.out}: a model with workbench versions (model history); it is kept "
+                         f"(choose a new file, or --replace)")
     if len(args.data) < 4:
         raise InputError(f"identify needs at least 4 healthy records (the parameter cluster's region), got "
                          f"{len(args.data)}")
@@ -132,7 +141,7 @@ def cmd_identify(args) -> None:
                          f"(check the records and the profile's [nameplate]; --force writes it anyway, marked)")
     if phys["problems"]:
         base.model.meta["forced"] = phys["problems"]
-    save_baseline(base, args.out, replace=args.replace)
+    save_baseline(base, args.out)
     m = base.model
     names_d, names_q = (tuple(t.name for t in ts) for ts in m.terms)
     params = {"d": dict(zip(names_d, m.theta_d.tolist())), "q": dict(zip(names_q, m.theta_q.tolist())),
@@ -262,8 +271,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("identify", parents=[common], help="learn a healthy baseline from records (Algs. 2-4)")
     s.add_argument("--profile", required=True)
-    s.add_argument("--out", required=True, help="model file to write (JSON); an existing one is kept unless --replace")
-    s.add_argument("--replace", action="store_true", help="overwrite --out if it exists (its history goes with it)")
+    s.add_argument("--out", required=True, help="model file to write (JSON); one with workbench versions is kept "
+                   "unless --replace")
+    s.add_argument("--replace", action="store_true", help="overwrite --out even if it holds workbench versions")
     s.add_argument("--form", choices=("lumped", "speed"), default="lumped",
                    help="regression form: paper eqs. 13-14 (lumped) or omega_e as a regressor (speed)")
     s.add_argument("--robust", action="store_true", help="median/MAD instead of mean/std")

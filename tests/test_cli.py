@@ -66,14 +66,20 @@ def test_identify_and_diagnose_json(capsys, healthy, model, tmp_path):
     ident = run_json(capsys, "identify", "--profile", GEAR, "--window", "0.5", "--out", str(tmp_path / "m2.json"),
                      *healthy)
     assert ident["records"] == len(healthy) and ident["model"] == str(tmp_path / "m2.json")
-    # an existing model is kept, and said so in one line; --replace is explicit
-    before = (tmp_path / "m2.json").read_bytes()
-    code, out, err = run(capsys, "identify", "--profile", GEAR, "--window", "0.5", "--out", str(tmp_path / "m2.json"),
-                         *healthy)
-    assert code == 2 and "m2.json: exists" in err and "--replace" in err and len(err.strip().splitlines()) == 1
-    assert (tmp_path / "m2.json").read_bytes() == before
-    assert run_json(capsys, "identify", "--profile", GEAR, "--window", "0.5", "--replace", "--out",
-                    str(tmp_path / "m2.json"), *healthy)["model"] == str(tmp_path / "m2.json")
+    # a baseline is re-identified in place (CONTRACT section 2's form); a model with workbench versions is
+    # kept, said so in one line, unless --replace
+    m2 = str(tmp_path / "m2.json")
+    assert run_json(capsys, "identify", "--profile", GEAR, "--window", "0.5", "--out", m2, *healthy)["model"] == m2
+    doc = json.loads(Path(m2).read_text())
+    doc["history"] = [{"version": 1, "added": ["current_offset"]}]
+    Path(m2).write_text(json.dumps(doc))
+    before = Path(m2).read_bytes()
+    code, out, err = run(capsys, "identify", "--profile", GEAR, "--window", "0.5", "--out", m2, *healthy)
+    assert code == 2 and "m2.json: a model with workbench versions" in err and "--replace" in err
+    assert len(err.strip().splitlines()) == 1 and Path(m2).read_bytes() == before
+    assert run_json(capsys, "identify", "--profile", GEAR, "--window", "0.5", "--replace", "--out", m2,
+                    *healthy)["model"] == m2
+    assert json.loads(Path(m2).read_text())["history"] == []
     assert ident["operating_point"]["fe_hz"] == pytest.approx(100.0, rel=1e-3)
     assert 70 < ident["operating_point"]["load_pct"] < 95
     assert set(ident["params"]) >= {"d", "q", "physical"}
