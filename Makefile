@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 PYTEST_ARGS ?=
 
-.PHONY: setup setup-test demo test test-full bench bench-alarms bench-workbench docs clean gateway
+.PHONY: setup setup-test demo test test-full bench bench-alarms bench-workbench bench-detection docs clean gateway
 
 setup: $(VENV)/.stamp-run
 
@@ -57,6 +57,11 @@ bench-alarms: setup-test
 bench-workbench: setup-test
 	$(BIN)/python -m bench.bench_workbench
 	$(BIN)/python -m bench.bench_workbench --seconds 2.5
+
+# the agent's detection and false alarms on motulator's drive, a third-party simulator (about 8 min
+# the first time; its records are cached)
+bench-detection: setup-test
+	$(BIN)/python -m bench.bench_thirdparty_detection
 
 docs: setup
 	$(BIN)/python -m firmware_if.plc_registers --write docs/registers.md

@@ -170,7 +170,7 @@ def cmd_identify(args) -> None:
         "physical parameters:\n" + "\n".join(lines) + "\n"
         + (f"lumped model pulled back to the nearest plausible values ({params['constrained']})\n"
            if params["constrained"] else "") +
-        f"cluster centre: Ts/Lq {params['ts_over_lq']:.4e}, B_GT {params['b_gt']:.5f} N m s/rad\n"
+        f"cluster centre: Ts/Lq {base.cluster.centre[0]:.4e}, B_GT {base.cluster.centre[1]:.5f} N m s/rad\n"
         f"alarm evidence: {doc['alarm']['stretches']} independent stretches; one-window (gross) alarms above "
         f"window z {_span(*doc['alarm']['gross_threshold_z'])}"
         + ("" if doc["alarm"]["stretches"] >= FULL_EVIDENCE_STRETCHES else
