@@ -1,5 +1,6 @@
 """The README works verbatim: its shell blocks run in a fresh folder (the project's config/ and
-.venv beside them, nothing else), exit 0, and the offline tour ends at the diagnosis it promises."""
+.venv beside them, nothing else), exit 0, and the offline tour ends at the diagnosis it promises;
+so does docs/workbench.md's walkthrough."""
 
 from __future__ import annotations
 
@@ -19,8 +20,8 @@ LONG_RUNNING = re.compile(r"pmsm-agent run --config ")
 RUN_S = 10
 
 
-def shell_blocks() -> list[str]:
-    return re.findall(r"```sh\n(.*?)```", (ROOT / "README.md").read_text(), flags=re.S)
+def shell_blocks(doc: str = "README.md") -> list[str]:
+    return re.findall(r"```sh\n(.*?)```", (ROOT / doc).read_text(), flags=re.S)
 
 
 @pytest.fixture
@@ -61,3 +62,13 @@ def test_every_other_block_runs(fresh):
         assert "Traceback" not in r.stderr
         if "events" in block:
             assert " start " in r.stdout and "learning" in r.stdout, r.stdout
+
+
+def test_the_workbench_walkthrough_finds_the_offset_it_hides(fresh):
+    walk = shell_blocks("docs/workbench.md")[0]
+    r = run_block(walk, fresh)
+    assert r.returncode == 0, r.stderr
+    assert "Traceback" not in r.stderr
+    first = next(line for line in r.stdout.splitlines() if "explains" in line)
+    assert first.split()[0] == "current_offset" and "SIGNIFICANT" in first, r.stdout[-2000:]
+    assert (fresh / "runs" / "report" / "index.html").is_file() and (fresh / "runs" / "m2.json").is_file()
