@@ -112,9 +112,11 @@ def cmd_frequencies(args) -> None:
 
 def _has_versions(path: str) -> bool:
     """Whether ``path`` is a model file that ``model add-effect`` wrote (its history has versions)."""
+    from agent.modelfile import load_baseline
+
     try:
-        return bool(json.loads(Path(path).read_bytes()).get("history"))
-    except (OSError, ValueError, AttributeError):
+        return bool(load_baseline(path).history)
+    except InputError:  # no model there, or not one this version reads
         return False
 
 

@@ -39,7 +39,7 @@ def record_signals(record: Record, profile: DriveProfile) -> Signals:
         theta = np.unwrap(record.theta_e)
         omega = record.omega_e if record.omega_e is not None else np.gradient(theta) * rate
     else:
-        theta, omega = track(record.i_abc, rate, profile.rated_fe_hz, start_at_input=True)  # no acquisition transient
+        theta, omega = track(record.i_abc, rate, profile.rated_fe_hz)  # no acquisition transient
     return Signals.from_abc(record.v_abc, record.i_abc, theta, omega, 1.0 / rate, profile.motor.pole_pairs)
 
 

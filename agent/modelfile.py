@@ -119,13 +119,15 @@ def load_baseline(path: str | Path) -> Baseline:
 
 
 def write_atomic(path: str | Path, data: bytes, replace: bool = True) -> Path:
-    """Write ``data`` to ``path`` via a temporary file in the same folder, fsync and rename. With
-    ``replace`` False the rename is a hard link, which fails if ``path`` exists (InputError), so a
-    file that appeared while the caller worked is kept too."""
+    """Write ``data`` to ``path`` via a temporary file in the same folder, fsync and rename; a
+    failure leaves any old file as it was and is an InputError naming ``path``. With ``replace``
+    False the rename is a hard link, which fails if ``path`` exists, so a file that appeared while
+    the caller worked is kept too."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    tmp = None
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             f.flush()
@@ -135,16 +137,18 @@ def write_atomic(path: str | Path, data: bytes, replace: bool = True) -> Path:
         else:
             os.link(tmp, path)
             os.unlink(tmp)
-    except FileExistsError:
-        Path(tmp).unlink(missing_ok=True)
-        raise InputError("exists; a model version is never overwritten (choose a new file)",
-                         source=str(path)) from None
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        dir_fd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(dir_fd)
+        finally:
+            os.close(dir_fd)
+    except BaseException as err:
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)
+        if isinstance(err, FileExistsError):
+            raise InputError("exists; a model version is never overwritten (choose a new file)",
+                             source=str(path)) from None
+        if isinstance(err, OSError):  # a folder there, no space, no permission (as save_record says it)
+            raise InputError(f"cannot write model: {err.strerror or err}", source=str(path)) from err
         raise
-    dir_fd = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(dir_fd)
-    finally:
-        os.close(dir_fd)
     return path

@@ -126,10 +126,9 @@ def input_start(x_abc, rate_hz: float, span_s: float = 0.02) -> tuple[float, flo
     return (f, phi0 - 0.5 * math.pi) if 0.0 < f < rate_hz / 20.0 else None
 
 
-def track(x_abc, rate_hz: float, f_nominal_hz: float, start_at_input: bool = False, **kw) -> tuple[np.ndarray, np.ndarray]:
-    """Fresh :class:`PLL` over a whole record ``(3, N)``: ``theta_e`` (rad), ``omega_e`` (rad/s);
-    ``start_at_input``: started where the record starts (:meth:`PLL.reset`)."""
+def track(x_abc, rate_hz: float, f_nominal_hz: float, **kw) -> tuple[np.ndarray, np.ndarray]:
+    """A :class:`PLL` over a whole record ``(3, N)``, started where the record starts
+    (:meth:`PLL.reset`): ``theta_e`` (rad), ``omega_e`` (rad/s)."""
     pll = PLL(rate_hz, f_nominal_hz, **kw)
-    if start_at_input:
-        pll.reset(x_abc)
+    pll.reset(x_abc)
     return pll.process(x_abc)

@@ -520,13 +520,13 @@ def test_a_first_span_reads_the_cluster_point_of_a_running_stream():
     angle 0 read it 2 % low (its acquisition transient)."""
     from agent.identify import cluster_point, record_signals
     from agent.model import Signals
-    from agent.pll import track
+    from agent.pll import PLL
 
     prof = profile()
     rec = sim("healthy", 80.0, 8.0, 300)
     half = rec.n // 2
     later = dataclasses.replace(rec, t=rec.t[half:], v_abc=rec.v_abc[:, half:], i_abc=rec.i_abc[:, half:])
-    cold = Signals.from_abc(later.v_abc, later.i_abc, *track(later.i_abc, prof.sampling.rate_hz, prof.rated_fe_hz),
+    cold = Signals.from_abc(later.v_abc, later.i_abc, *PLL(prof.sampling.rate_hz, prof.rated_fe_hz).process(later.i_abc),
                             1.0 / prof.sampling.rate_hz, prof.motor.pole_pairs)
     running, first, cold = (cluster_point(s, prof, "speed", (), None)[0]
                             for s in (record_signals(rec, prof).slice(half, rec.n), record_signals(later, prof), cold))

@@ -76,6 +76,8 @@ CASES = [
     (["identify", "--profile", P, "--out", "{dir}/m.json", "{text_csv}", "{rec}", "{rec}", "{rec}"], "'ic'"),
     (["identify", "--profile", P, "--out", "{dir}/m.json", "{notzip_npz}", "{rec}", "{rec}", "{rec}"], "not a zip file"),
     (["identify", "--profile", P, "--out", "{dir}/m.json", "{dir_npz}", "{rec}", "{rec}", "{rec}"], "dir.npz: is a folder"),
+    (["identify", "--profile", P, "--window", "0.5", "--out", "{dir}", "{rec}", "{rec}", "{rec}", "{rec}"],
+     "cannot write model: Is a directory"),
     (["diagnose", "--model", "{bad_json}", "{rec}"], "bad.json"),
     (["diagnose", "--model", "{dir}/none.json", "{rec}"], "none.json"),
     (["diagnose", "--model", "{model}", "{dir}/none.npz"], "none.npz"),

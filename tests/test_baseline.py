@@ -135,7 +135,7 @@ def test_write_atomic_keeps_the_old_file_when_writing_fails(tmp_path, monkeypatc
         raise OSError("disk full")
 
     monkeypatch.setattr(os, "fsync", boom)
-    with pytest.raises(OSError):
+    with pytest.raises(InputError, match="m.json: cannot write model: disk full"):
         write_atomic(path, b"partial")
     assert path.read_bytes() == b"good"
     assert [p.name for p in tmp_path.iterdir()] == ["m.json"]

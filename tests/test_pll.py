@@ -71,28 +71,28 @@ def test_a_pll_started_where_the_record_starts_has_no_acquisition_transient(phi0
     assert f0 == pytest.approx(92.0, rel=0.005)
     assert abs(angle_error(np.array([theta0]), phi[:1])[0]) < 0.01
     first = t < 0.02
-    started = angle_error(track(x, FS, F_NOM, start_at_input=True)[0], phi)
-    cold = angle_error(track(x, FS, F_NOM)[0], phi)
+    started = angle_error(track(x, FS, F_NOM)[0], phi)
+    cold = angle_error(PLL(FS, F_NOM).process(x)[0], phi)
     assert np.abs(started[first]).max() < math.radians(1.0) < np.abs(cold[first]).max()
     # nothing to start from: no phase, or too few samples (a stream's first block may be one sample)
     for short in (np.zeros_like(x), x[:, :1], x[:, :0]):
         assert input_start(short, FS) is None
     pll = PLL(FS, F_NOM)
     pll.reset(x[:, :1])  # the nominal start, as without an input
-    np.testing.assert_array_equal(pll.process(x)[0], track(x, FS, F_NOM)[0])
+    np.testing.assert_array_equal(pll.process(x)[0], PLL(FS, F_NOM).process(x)[0])
 
 
 def test_worst_initial_phase_is_covered():
     # initial error of exactly pi (input on -q): the detector must not stall there
     t, phi = constant(F_NOM, 0.4, np.pi / 2 + np.pi)
-    theta, _ = track(three_phase(phi, noise=0.0), FS, F_NOM)
+    theta, _ = PLL(FS, F_NOM).process(three_phase(phi, noise=0.0))
     assert lock_time(angle_error(theta, phi), t) < 0.050
 
 
 @pytest.mark.parametrize("f_true", [100.0, 95.0])
 def test_steady_state_speed_error_below_0p1_percent(f_true):
     t, phi = constant(f_true, 1.0, 0.7)
-    theta, omega = track(three_phase(phi), FS, F_NOM)
+    theta, omega = PLL(FS, F_NOM).process(three_phase(phi))
     ss = t >= 0.3
     rel = np.abs(omega[ss] / (2.0 * np.pi * f_true) - 1.0)
     assert rel.max() < 1e-3
@@ -103,7 +103,7 @@ def test_alignment_matches_frames_park():
     # theta_e puts a clean balanced input on +q: d ~ 0, q ~ amplitude
     t, phi = constant(F_NOM, 0.4, 2.0)
     x = three_phase(phi, h5=0.0, h7=0.0, noise=0.0, amp=3.0)
-    theta, _ = track(x, FS, F_NOM)
+    theta, _ = PLL(FS, F_NOM).process(x)
     dq, _ = abc_to_dq(x, theta)
     ss = t >= 0.2
     np.testing.assert_allclose(dq[0, ss], 0.0, atol=3.0e-3)  # < 0.06 deg
@@ -112,7 +112,7 @@ def test_alignment_matches_frames_park():
 
 def test_theta_is_wrapped_and_omega_units():
     t, phi = constant(F_NOM, 0.2, 1.0)
-    theta, omega = track(three_phase(phi), FS, F_NOM)
+    theta, omega = PLL(FS, F_NOM).process(three_phase(phi))
     assert theta.min() >= -np.pi and theta.max() < np.pi
     assert omega[-1] == pytest.approx(2.0 * np.pi * F_NOM, rel=1e-3)
 
@@ -129,9 +129,9 @@ def test_unbalanced_input_locks():
 def test_loop_gain_independent_of_amplitude():
     t, phi = constant(97.0, 0.3, 5.0)
     x = three_phase(phi)
-    ref = track(x, FS, F_NOM)
+    ref = PLL(FS, F_NOM).process(x)
     for amp in (1e-3, 7.0, 1e4):
-        for a, b in zip(track(amp * x, FS, F_NOM), ref):
+        for a, b in zip(PLL(FS, F_NOM).process(amp * x), ref):
             np.testing.assert_allclose(a, b, rtol=0.0, atol=1e-9)
 
 
@@ -156,7 +156,7 @@ def test_does_not_track_fault_speed_modulation(fm):
     m = 0.02
     t, phi = constant(F_NOM, 3.0, 0.3)
     phi = phi + m * np.sin(2.0 * np.pi * fm * t)
-    theta, omega = track(three_phase(phi, h5=0.0, h7=0.0, noise=0.0), FS, F_NOM)
+    theta, omega = PLL(FS, F_NOM).process(three_phase(phi, h5=0.0, h7=0.0, noise=0.0))
     ss = t >= 1.0
     basis = np.column_stack([np.sin(2 * np.pi * fm * t[ss]), np.cos(2 * np.pi * fm * t[ss]),
                              np.ones(ss.sum())])
@@ -177,7 +177,7 @@ def test_does_not_track_fault_speed_modulation(fm):
 def test_phase_jump_reacquires_with_wide_band():
     t, phi = constant(F_NOM, 0.8, 1.0)
     phi = phi + np.where(t >= 0.4, np.pi / 2, 0.0)
-    theta, _ = track(three_phase(phi), FS, F_NOM)
+    theta, _ = PLL(FS, F_NOM).process(three_phase(phi))
     after = t >= 0.4
     # the narrow loop alone would need ~0.5 s; unlock restores the wide band
     assert lock_time(angle_error(theta[after], phi[after]), t[after] - 0.4) < 0.050

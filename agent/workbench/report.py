@@ -50,8 +50,10 @@ def _plots(data: dict, ranking: dict | None, out: Path) -> list[tuple[str, str]]
         ax[k].plot(t, sig.i_dq[k, cut], lw=1.2, color="black", label="measured")
         ax[k].set_ylabel(f"{name} (A)")
     ax[2].plot(t, sig.i_abc[0, cut], lw=1.2, color="black", label="measured")
-    for j, trace in enumerate(data["traces"]):
-        y, name = trace[1], Path(trace[2]).name
+    short = [Path(tr[2]).name for tr in data["traces"]]
+    names = short if len(set(short)) == len(short) else [tr[2] for tr in data["traces"]]  # m.json twice: the paths
+    for j, (trace, name) in enumerate(zip(data["traces"], names)):
+        y = trace[1]
         for k in (0, 1):
             ax[k].plot(t, y[k, cut], lw=0.8, ls=("-", "--", ":", "-.")[j % 4], label=f"{name} (free run)")
         ax[2].plot(t, dq_to_abc(y[:, cut], sig.theta_e[cut])[0], lw=0.8, ls=("-", "--", ":", "-.")[j % 4],
