@@ -20,7 +20,7 @@ def read_toml(path, what: str) -> dict:
     from pathlib import Path
 
     try:
-        return tomllib.loads(Path(path).read_text())
+        return tomllib.loads(Path(path).read_text(encoding="utf-8-sig"))  # a byte-order mark is no error
     except FileNotFoundError:
         raise InputError(f"no such {what} file", source=str(path)) from None
     except (OSError, UnicodeDecodeError) as err:

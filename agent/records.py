@@ -6,7 +6,10 @@ samples) raises :class:`agent.errors.InputError` naming the file and the problem
 
 Formats (channel names ``t, va, vb, vc, ia, ib, ic`` and optional ``theta_e, omega_e``):
 
-* ``.csv``: header row, comma separated, column order free, unknown columns ignored.
+* ``.csv``: header row, column order free, unknown columns ignored; as spreadsheets export it:
+  the separator (comma, semicolon, tab or bar) read off the header, a decimal comma where the
+  separator is not a comma, names in any case with a stated unit (``ia [A]``, ``IA (mA)``,
+  ``t_ms``) converted to the record's (:data:`UNIT_FACTORS`), a unit of another quantity refused.
 * ``.npz``: one 1-D array per channel; ``meta`` as a JSON string under ``__meta__``.
 * ``.tdms``: one channel per name in one group (the only group, the group named by the root
   property ``record_group``, or the only group holding the required channels); time from the
@@ -231,23 +234,101 @@ def _plain(value):
 
 _CONVERT = re.compile(r"could not convert string '(.*)' to \w+ at row (\d+), column (\d+)")
 _RAGGED = re.compile(r"at row (\d+) with (\d+) columns")
+SEPARATORS = (",", ";", "\t", "|")  #: CSV field separators recognised from the header row
+#: units a column may state in its header, per quantity: factor to the record's unit
+UNIT_FACTORS = {"s": {"s": 1.0, "ms": 1e-3, "us": 1e-6, "µs": 1e-6, "min": 60.0},
+                "V": {"V": 1.0, "mV": 1e-3, "kV": 1e3},
+                "A": {"A": 1.0, "mA": 1e-3, "kA": 1e3},
+                "rad": {"rad": 1.0, "deg": np.pi / 180.0, "°": np.pi / 180.0},
+                "rad/s": {"rad/s": 1.0, "1/s": 1.0, "deg/s": np.pi / 180.0}}
+SPELLINGS = {**{k: k for k in UNITS}, "time": "t"}  #: header names (lower case) of each channel
+_UNIT = re.compile(r"^\s*(?:\[(?P<b>[^\]]*)\]|\((?P<p>[^)]*)\)|[_/ ](?P<s>\S+))\s*$")
 
 
-def _csv_header(f, src: str) -> tuple[list[str], list[str]]:
-    """(header, the known channel names in it) of an open CSV file, positioned after the header."""
-    header = [h.strip() for h in next(csv.reader([f.readline()]), [])]
-    dup = sorted({h for h in header if h in UNITS and header.count(h) > 1})
-    if dup:
-        raise InputError(f"duplicate column '{dup[0]}'", source=src)
-    return header, [k for k in UNITS if k in header]
+@dataclass(frozen=True)
+class CsvLayout:
+    """How a CSV file is written: its separator, whether numbers use a decimal comma, its header
+    fields, and per known channel the column index and the factor to the record's unit."""
+
+    sep: str
+    decimal_comma: bool
+    header: list
+    columns: dict  #: channel name -> (column index, factor)
+
+    def lines(self, lines):
+        """Data lines as numpy reads them (a decimal comma turned into a point)."""
+        return (line.replace(",", ".") for line in lines) if self.decimal_comma else lines
 
 
-def _csv_rows(lines, header: list[str], names: list[str], src: str, first_row: int = 0) -> np.ndarray:
-    """CSV data rows (an open file or a list of lines) -> (rows, len(names)); errors name the sample."""
+def _unit_factor(unit: str, quantity: str) -> float | None:
+    """Factor from ``unit`` to the record's unit of ``quantity``; None if it is not one of its units
+    (case aside: ``ma`` is mA)."""
+    factors = UNIT_FACTORS[quantity]
+    if unit in factors:
+        return factors[unit]
+    return {k.lower(): v for k, v in factors.items()}.get(unit.lower())
+
+
+def _channel(field: str, src: str) -> tuple[str, float] | None:
+    """(channel, factor) a header field names, in any case and with a stated unit (``ia [A]``,
+    ``ia (mA)``, ``ia_A``, ``IA``), or None for a column the record does not use. A bracketed unit
+    that is not one of the channel's quantity is refused naming it, as is a suffixed one that is a
+    unit of another quantity (``ia_V``); any other suffix is another column (``t_motor``)."""
+    low = field.strip().lower()
+    for spelled, name in sorted(SPELLINGS.items(), key=lambda kv: len(kv[0]), reverse=True):  # theta_e before t
+        if not low.startswith(spelled):
+            continue
+        rest = field.strip()[len(spelled):]
+        if not rest:
+            return name, 1.0
+        m = _UNIT.match(rest)
+        if not m:
+            continue
+        unit = next(u for u in m.groups() if u is not None).strip()
+        factor = _unit_factor(unit, UNITS[name])
+        if factor is not None:
+            return name, factor
+        if m.group("s") is not None and not any(_unit_factor(unit, q) is not None for q in UNIT_FACTORS):
+            continue
+        raise InputError(f"column '{field.strip()}': unit '{unit}' is not one of {UNITS[name]}'s "
+                         f"({', '.join(UNIT_FACTORS[UNITS[name]])})", source=src)
+    return None
+
+
+def _csv_layout(f, src: str) -> CsvLayout:
+    """The layout of an open CSV file from its header row and first data row; the file is left
+    after the header."""
+    head = f.readline()
+    pos = f.tell()
+    first = f.readline()
+    f.seek(pos)
+    sep = max(SEPARATORS, key=lambda c: (head.count(c), c == ","))
+    header = [h.strip() for h in next(csv.reader([head], delimiter=sep), [])]
+    # a decimal comma: a separator other than the comma, and commas inside the data row's numbers
+    decimal_comma = sep != "," and bool(re.search(r"\d,\d", first))
+    columns, seen = {}, {}
+    for j, field in enumerate(header):
+        hit = _channel(field, src)
+        if hit is None:
+            continue
+        name, factor = hit
+        if name in seen:
+            raise InputError(f"duplicate column '{name}' ('{seen[name]}' and '{field}')", source=src)
+        seen[name] = field
+        columns[name] = (j, factor)
+    return CsvLayout(sep, decimal_comma, header, columns)
+
+
+def _csv_rows(lines, layout: CsvLayout, src: str, first_row: int = 0) -> dict:
+    """CSV data rows (an open file or a list of lines) -> channel name -> array in the record's
+    units; errors name the sample."""
+    names = list(layout.columns)
+    header = layout.header
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # "input contained no data"
-            data = np.loadtxt(lines, delimiter=",", usecols=[header.index(k) for k in names], ndmin=2)
+            data = np.loadtxt(layout.lines(lines), delimiter=layout.sep, usecols=[layout.columns[k][0] for k in names],
+                              ndmin=2)
     except ValueError as err:
         msg = str(err)
         if m := _CONVERT.search(msg):
@@ -258,7 +339,9 @@ def _csv_rows(lines, header: list[str], names: list[str], src: str, first_row: i
             raise InputError(f"sample {first_row + int(m.group(1)) - 1} has only {m.group(2)} fields, header has "
                              f"{len(header)}", source=src) from err
         raise InputError(f"cannot parse CSV: {msg}", source=src) from err
-    return data if data.shape[1] == len(names) else np.empty((0, len(names)))  # no data rows
+    if data.shape[1] != len(names):  # no data rows
+        data = np.empty((0, len(names)))
+    return {k: data[:, j] * layout.columns[k][1] for j, k in enumerate(names)}
 
 
 def _csv_errors(err: Exception, src: str) -> InputError:
@@ -268,29 +351,24 @@ def _csv_errors(err: Exception, src: str) -> InputError:
 
 
 def _read_csv(path: Path, src: str):
-    try:
-        with open(path, encoding="utf-8-sig", newline="") as f:
-            header, names = _csv_header(f, src)
-            if not names:
-                return {}, {}, header
-            data = _csv_rows(f, header, names, src)
-    except (UnicodeDecodeError, OSError) as err:
-        raise _csv_errors(err, src) from err
-    return dict(zip(names, data.T)), {}, header
+    return next(_stream_csv(path, src, None))
 
 
-def _stream_csv(path: Path, src: str, chunk: int):
+def _stream_csv(path: Path, src: str, chunk: int | None):
+    """Chunks of ``chunk`` rows (None: the whole file at once) as (columns, meta, header)."""
     try:
         with open(path, encoding="utf-8-sig", newline="") as f:
-            header, names = _csv_header(f, src)
-            if not names:
-                yield {}, {}, header
+            layout = _csv_layout(f, src)
+            if not layout.columns:
+                yield {}, {}, layout.header
+                return
+            if chunk is None:
+                yield _csv_rows(f, layout, src), {}, layout.header
                 return
             row = 0
             while lines := list(islice(f, chunk)):
-                data = _csv_rows(lines, header, names, src, row)
+                yield _csv_rows(lines, layout, src, row), {}, layout.header
                 row += len(lines)
-                yield dict(zip(names, data.T)), {}, header
     except (UnicodeDecodeError, OSError) as err:
         raise _csv_errors(err, src) from err
 

@@ -200,7 +200,9 @@ def test_missing_required_column(tmp_path, fmt):
 
 
 def test_missing_several_columns_and_empty_csv(tmp_path):
-    with raises(r"missing required columns 't', 'va', 'vb', 'vc', 'ia', 'ib', 'ic' \(found: Va, Ia\)"):
+    with raises(r"missing required columns 't', 'va', 'vb', 'vc', 'ia', 'ib', 'ic' \(found: U1, I1\)"):
+        load_record(write_csv(tmp_path / "r.csv", {"U1": [1.0], "I1": [2.0]}))
+    with raises(r"missing required columns 't', 'vb', 'vc', 'ib', 'ic' \(found: Va, Ia\)"):  # any case
         load_record(write_csv(tmp_path / "r.csv", {"Va": [1.0], "Ia": [2.0]}))
     (tmp_path / "e.csv").write_text("")
     with raises(r"missing required columns .*\(found: none\)"):

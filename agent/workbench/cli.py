@@ -109,16 +109,22 @@ def cmd_explain(args) -> None:
         cdoc, data = compare(base, preps)
         cdoc["warnings"] = doc["warnings"]
         doc["report"] = str(write_report(args.report, f"Effects missing from {args.model}", cdoc, data, doc))
-    lines = [f"NRMSE (held-out, free run, beyond the noise floor): model {_pct(doc['nrmse_before'])}, control "
-             f"{_pct(doc['nrmse_control'])}" + (" (the model itself)" if doc["control_is_model"] else
-                                               " (the model refitted without new effects)")
+    lines = [f"NRMSE (held-out, free run, beyond the noise floor): model {_pct(doc['nrmse_before'])}"
+             + ("" if doc["nrmse_control"] is None and "note" in doc else
+                f", control {_pct(doc['nrmse_control'])}" + (" (the model itself)" if doc["control_is_model"] else
+                                                            " (the model refitted without new effects)"))
              + (f"; the control's noise floor {_pct(doc['noise_floor'])}" if doc.get("noise_floor") is not None else "")]
     lines += [doc["note_before"]] if doc.get("note_before") else []
+    lines += textwrap.wrap(f"no effect ranked: {doc['note']}", 100, subsequent_indent="  ") if "note" in doc else []
     for r in doc["candidates"]:
         mark = ("SIGNIFICANT" if r["significant"] else "not identifiable" if not r["identifiable"]
                 else "at bound" if r["at_bound"] else "")
         share = "   n/a" if r["explained_fraction"] is None else f"{100 * r['explained_fraction']:6.1f}"
-        lines.append(f"  {r['effect']:22s} explains {share} %  NRMSE {_pct(r['nrmse_after'])}  {mark:16s} "
+        size = r.get("effect_size")
+        ci = ("" if not size or (r["explained_fraction"] or 0.0) < NOTE_SHARE else
+              " (per block {:.0f} %, 95 % {:.0f}..{:.0f} %, {:.3g} effective samples)".format(
+                  100 * size["share"], *(100 * x for x in size["share_ci95"]), size["n_eff"]))
+        lines.append(f"  {r['effect']:22s} explains {share} %{ci}  NRMSE {_pct(r['nrmse_after'])}  {mark:16s} "
                      + ("" if mark == "not identifiable" else params_text(r["params"])))
         if r.get("note") and (r["explained_fraction"] or 0.0) >= NOTE_SHARE:  # what the records cannot tell, and what would
             lines += textwrap.wrap(r["note"], 100, initial_indent=" " * 4, subsequent_indent=" " * 6)

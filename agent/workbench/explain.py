@@ -34,6 +34,7 @@ from agent.effects import EFFECTS
 from agent.effects import get as get_effect
 from agent.errors import InputError
 from agent.evidence import effective_size
+from agent.workbench.excitation import dynamics, no_dynamics_note
 from agent.workbench.fitting import NONLINEAR, Prepared, Refit, fit_cost, heldout, refit
 
 ALPHA = 0.01  #: family-wise significance level of the test over records
@@ -192,6 +193,22 @@ def block_p(ctrl: dict, cand: dict) -> float:
     return float(scipy.stats.t.sf(mean / np.sqrt(var / n_eff), max(n_eff - 1.0, 1.0)))
 
 
+def effect_size(ctrl: dict, cand: dict, nrmse_ctrl: float | None, nrmse_cand: float | None) -> dict | None:
+    """A claim's size and its precision: the mean per-block share of the control's held-out error
+    the candidate explains, its 95 % interval from the same t distribution and effective sample
+    size as :func:`block_p` (the test rejects where the interval's lower end clears 0 at the
+    level's confidence), ``n_eff``, the records, and the ``gain`` NRMSE_control / NRMSE_candidate.
+    A large gain that differs from record to record has a wide interval: that, not the gain, is
+    what the test weighs. None where a free run is unstable."""
+    if not (ctrl["stable"] and cand["stable"]):
+        return None
+    mean, var, n_eff = effective_size(_block_shares(ctrl, cand))
+    half = float(scipy.stats.t.ppf(0.975, max(n_eff - 1.0, 1.0)) * np.sqrt(var / n_eff))
+    gain = None if not nrmse_cand else (nrmse_ctrl or 0.0) / nrmse_cand
+    return {"share": mean, "share_ci95": [mean - half, mean + half], "n_eff": n_eff, "records": len(ctrl["records"]),
+            "gain": gain}
+
+
 def records_needed(ctrl: dict, cand: dict, alpha: float, most: int = 40) -> int | None:
     """How many records like these would bring :func:`block_p` below ``alpha`` if the candidate's
     share were as measured (its mean and spread kept, the effective sample size growing with the
@@ -293,7 +310,14 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
     candidates = [get_effect(e).id for e in (candidates or EFFECTS) if e not in have]
     base, prior = drive_base(baseline), physical_prior(baseline)
     before = heldout(model, preps)
+    dyn = dynamics(preps, prior)
+    if dyn["quiet"]:
+        return _unranked(baseline, preps, before, None, dyn, no_dynamics_note(dyn), t0)
     ctrl = control(model, preps, base, prior=prior)
+    h_ctrl = heldout(ctrl.model, preps)
+    if not h_ctrl["stable"]:
+        return _unranked(baseline, preps, before, h_ctrl, dyn, f"the base model cannot be refitted stably on these "
+                         f"records ({h_ctrl['note']}), so no effect is ranked against it", t0)
     fits = []
     for j, eid in enumerate(candidates):
         if progress:
@@ -308,7 +332,7 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
             ctrl = again
             fits = [r if r.cost <= ctrl.cost else _zero_effect(ctrl, eid, r.at_bound.get(eid, False))
                     for eid, r in zip(candidates, fits)]
-    h_ctrl = heldout(ctrl.model, preps)
+            h_ctrl = heldout(ctrl.model, preps)
     rows, p_values, held = [], [], []
     for eid, r in zip(candidates, fits):
         h = heldout(r.model, preps)
@@ -319,6 +343,7 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
         row = {"effect": eid, "nrmse_after": _total(h), "explained_fraction": _share(h_ctrl, h),
                "significant": False, "p_value": p_values[-1], "identifiable": identifiable, "at_bound": bound,
                "nrmse_after_dq": _dq(h), "identifiability": how,
+               "effect_size": effect_size(h_ctrl, h, _total(h_ctrl), _total(h)),
                **reported(eid, r, context(r, preps, baseline.profile))}
         if not identifiable:
             row["note"] = unidentified_note(eid, how)
@@ -338,17 +363,38 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
             row["note"] = "; ".join(filter(None, [row.get("note"), too_few_note(h_ctrl, h, level, row["p_value"])]))
     rows.sort(key=lambda r: (r["significant"], r["explained_fraction"] if r["explained_fraction"] is not None
                              else -np.inf), reverse=True)
-    doc = {"nrmse_before": _total(before), "nrmse_control": _total(h_ctrl),
-           "noise_floor": None if h_ctrl["noise_floor"] is None else h_ctrl["noise_floor"]["total"],
-           "nrmse_before_dq": _dq(before),
-           "candidates": rows, "control_params": ctrl.phys, "control_is_model": ctrl.model is model,
-           "records": [p.source for p in preps], "warnings": operating_warnings(baseline, preps),
-           "seconds": time.perf_counter() - t0}
-    if not before["stable"]:
-        doc["note_before"] = before["note"]
+    doc = _document(baseline, preps, before, h_ctrl, dyn, rows, t0)
+    doc.update(control_params=ctrl.phys, control_is_model=ctrl.model is model)
+    for key in dyn["unpinned"]:  # the voltage varies, the current does not follow it as the model expects
+        doc["warnings"].append(f"{key[0]}_{key[1]} is pinned by neither these records (one-step relative sd "
+                               f"{dyn['inductance_rel_se'][key]:.0%}, with a voltage spread of "
+                               f"{dyn['voltage_spread_v']:.3g} V against noise {dyn['voltage_noise_v']:.3g} V) nor the "
+                               f"baseline: the refits read it from the free run")
     if len(preps) < MIN_RECORDS:
         doc["warnings"].append(f"{len(preps)} record(s): significance needs at least {MIN_RECORDS} "
                                f"(the test is over records); nothing is called significant")
+    return doc
+
+
+def _document(baseline, preps: list[Prepared], before: dict, h_ctrl: dict | None, dyn: dict, rows: list,
+              t0: float) -> dict:
+    """explain's CONTRACT document around its candidate ``rows``."""
+    doc = {"nrmse_before": _total(before), "nrmse_control": None if h_ctrl is None else _total(h_ctrl),
+           "noise_floor": None if h_ctrl is None or h_ctrl["noise_floor"] is None else h_ctrl["noise_floor"]["total"],
+           "nrmse_before_dq": _dq(before), "candidates": rows, "control_params": None, "control_is_model": False,
+           "dynamics": dyn, "records": [p.source for p in preps], "warnings": operating_warnings(baseline, preps),
+           "seconds": time.perf_counter() - t0}
+    if not before["stable"]:
+        doc["note_before"] = before["note"]
+    return doc
+
+
+def _unranked(baseline, preps: list[Prepared], before: dict, h_ctrl: dict | None, dyn: dict, why: str,
+              t0: float) -> dict:
+    """explain's answer where no ranking would mean anything (``why``): no candidates, ``note``
+    saying why and what would help."""
+    doc = _document(baseline, preps, before, h_ctrl, dyn, [], t0)
+    doc["note"] = why
     return doc
 
 
