@@ -32,6 +32,7 @@ documentation generated from :data:`REGISTERS`.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from enum import IntEnum
 
@@ -53,6 +54,8 @@ SAMPLE_BASE = 1024
 WINDOW_SAMPLES = 10_000
 WINDOW_REGS = WINDOW_SAMPLES * N_CHANNELS
 
+
+RATE_TOLERANCE = 1e-6  #: relative: a header's RATE (float32) against the profile's sampling.rate_hz
 
 class Status(IntEnum):
     IDLE = 0
@@ -156,6 +159,29 @@ class CaptureHeader:
                 "WINDOW_START_ECHO": self.window_start,
                 **{f"SCALE_{c.upper()}": s for c, s in zip(CHANNELS, self.scales)}}
         return encode_block(HEADER_DEFS, vals, HEADER_REGS)
+
+    def problem(self, count: int, rate_hz: float = 0.0) -> tuple[str, str] | None:
+        """(register, why) a READY header cannot describe the snapshot of ``count`` samples that
+        was asked for at ``rate_hz`` (the drive profile's; 0: not checked), or None when it can. A
+        header is checked like any other frame: a NaN, negative or infinite scale would turn into
+        NaN or sign-flipped phase samples."""
+        bad_scale = next((c for c, x in zip(CHANNELS, self.scales) if not (math.isfinite(x) and x > 0)), None)
+        checks = (
+            ("LAYOUT_VERSION", self.version != LAYOUT_VERSION,
+             f"unknown layout version {self.version} (this agent reads {LAYOUT_VERSION})"),
+            ("CHANNELS", self.n_channels != N_CHANNELS, f"CHANNELS = {self.n_channels}, the layout has {N_CHANNELS}"),
+            ("COUNT", self.count != count, f"COUNT = {self.count}, {count} were asked for"),
+            ("CAPACITY", self.count > self.capacity, f"COUNT = {self.count} is beyond CAPACITY = {self.capacity}"),
+            ("WINDOW_SAMPLES", self.window_samples < 1, f"WINDOW_SAMPLES = {self.window_samples}"),
+            ("RATE", not (math.isfinite(self.rate_hz) and self.rate_hz > 0),
+             f"RATE = {self.rate_hz:g} Hz is not a positive finite rate"),
+            ("RATE", bool(rate_hz) and abs(self.rate_hz - rate_hz) > RATE_TOLERANCE * rate_hz,
+             f"RATE = {self.rate_hz:.9g} Hz disagrees with the profile's sampling.rate_hz = {rate_hz:.9g} Hz"),
+            (f"SCALE_{(bad_scale or '').upper()}", bad_scale is not None,
+             f"SCALE_{(bad_scale or '').upper()} = {self.scales[CHANNELS.index(bad_scale)] if bad_scale else 0:g} "
+             f"is not a positive finite scale"),
+        )
+        return next(((reg, why) for reg, bad, why in checks if bad), None)
 
     @classmethod
     def from_registers(cls, regs) -> CaptureHeader:

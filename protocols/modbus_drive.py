@@ -27,7 +27,7 @@ import asyncio
 import logging
 import threading
 import time
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -84,6 +84,7 @@ class SnapshotSourceConfig:
     backoff_max_s: float = 5.0
     max_retries: int = 3
     arm: bool = False
+    rate_hz: float = 0.0  #: the drive profile's sampling rate a snapshot's RATE must agree with (0: not checked)
 
     def __post_init__(self):
         def bad(key, why):
@@ -123,6 +124,7 @@ class ModbusSourceStats(SourceStats):
     capture_errors: int = 0
     discarded: int = 0
     requests: int = 0
+    bad_headers: Counter = field(default_factory=Counter)  #: refused READY headers by what was wrong (the register)
     last_snapshot_s: float = float("nan")  #: trigger -> verified, s
     last_transfer_s: float = float("nan")  #: sample reads only, s
 
@@ -397,13 +399,11 @@ class ModbusSnapshotSource(OpenClose):
 
     def _start_reading(self, hdr: CaptureHeader) -> None:
         c = self.config
-        problem = ("channels" if hdr.n_channels != cap.N_CHANNELS else
-                   "count" if hdr.count != c.samples else
-                   "window" if hdr.window_samples < 1 else
-                   "rate" if not hdr.rate_hz > 0 else "")
+        problem = hdr.problem(c.samples, c.rate_hz)
         if problem:
             self.stats.bad_frames += 1
-            self._capture_failed(f"header has a bad {problem}: {hdr}")
+            self.stats.bad_headers[problem[0]] += 1
+            self._capture_failed(f"bad header: {problem[1]}")
             return None
         self._hdr = hdr
         self._hdr_rate = hdr.rate_hz

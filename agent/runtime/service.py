@@ -98,7 +98,8 @@ def build_source(drive, rate_hz: float, span_s: float | None = None) -> Source:
         return ModbusSnapshotSource(SnapshotSourceConfig(  # a snapshot must hold a whole span
             drive=name, transport="rtu" if s.serial_port else "tcp", host=s.host or "127.0.0.1", port=s.port,
             serial_port=s.serial_port or "", baudrate=s.baud, device_id=s.unit_id,
-            samples=int(round(span_s * rate_hz)), request_timeout_s=s.timeout_s, poll_interval_s=s.poll_interval_s))
+            samples=int(round(span_s * rate_hz)), request_timeout_s=s.timeout_s, poll_interval_s=s.poll_interval_s,
+            rate_hz=rate_hz))
     if s.kind == "nidaq":
         from protocols.nidaq import NidaqSource
 
