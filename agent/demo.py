@@ -10,7 +10,9 @@ happens. A fresh state directory is used, so every demo learns from scratch.
 from __future__ import annotations
 
 import dataclasses
+import signal
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -79,6 +81,9 @@ def run_demo(seconds: float = WALL_LIMIT_S, say=print) -> list[dict]:
             f"{cfg.modbus_server.host}:{cfg.modbus_server.port}, zenoh {', '.join(cfg.zenoh.listen)} prefix "
             f"{cfg.zenoh.prefix}; script: " + ", ".join(f"{c} {s:g} s" for c, s in SCRIPT))
         service = Service(cfg, on_transition)
+        if threading.current_thread() is threading.main_thread():  # SIGTERM/SIGINT end the demo, its temp dir removed
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                signal.signal(sig, lambda *_: service.stop_event.set())
         # the whole demo, start-up and shut-down included, stays within the limit
         service.run(max_seconds=max(1.0, min(seconds, WALL_LIMIT_S) - (time.monotonic() - t0) - 3.0))
     say(f"demo: done after {time.monotonic() - t0:.1f} s, {len(transitions)} transitions")

@@ -176,3 +176,31 @@ def test_console_script_no_traceback(tmp_path):
     assert "Traceback" not in proc.stderr and "motor.foo" in proc.stderr
     proc = subprocess.run([str(exe), "frequencies", "--profile", GEAR, "--json"], capture_output=True, text=True)
     assert proc.returncode == 0 and "families" in json.loads(proc.stdout)
+
+
+def test_demo_ends_on_sigterm_and_leaves_no_temp_dir(tmp_path):
+    """SIGTERM ends the demo at once (exit 0) and removes its state directory."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    env = {**os.environ, "TMPDIR": str(tmp_path)}
+    proc = subprocess.Popen([sys.executable, "-m", "agent.cli", "demo", "--seconds", "60"], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        first = proc.stdout.readline()  # printed once the service is set up, inside the temp dir
+        assert first.startswith("demo: simulated gear drive"), first
+        t_end = time.monotonic() + 30
+        while not list(tmp_path.glob("pmsm-demo-*")) and time.monotonic() < t_end:
+            time.sleep(0.05)
+        assert list(tmp_path.glob("pmsm-demo-*"))
+        time.sleep(1.0)
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=30)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, out
+    assert "demo: done after" in out
+    assert not list(tmp_path.glob("pmsm-demo-*"))

@@ -38,7 +38,7 @@ def test_shipped_default_is_valid(monkeypatch):
     assert (cfg.modbus_server.host, cfg.modbus_server.port) == ("127.0.0.1", 5020)
     z = cfg.zenoh
     assert (z.mode, z.listen, z.connect, z.prefix) == ("peer", ("tcp/127.0.0.1:7447",), (), "pmsm/demo")
-    assert cfg.state_dir == Path("state").resolve() and cfg.library.path == cfg.state_dir / "library"
+    assert cfg.state_dir == cfg.source.parent / "state" and cfg.library.path == cfg.state_dir / "library"
 
 
 def test_default_zenoh_prefix_names_the_host(tmp_path):

@@ -142,3 +142,41 @@ def test_events_cli(tmp_path, capsys):
     assert len(out) == 2 and "state=caution(1)" in out[0] and "error" in out[1]
     assert main(["events", "--state-dir", str(tmp_path / "none")]) == 2
     assert "no journal" in capsys.readouterr().err
+
+
+def test_events_text_and_json_agree_oldest_first(tmp_path, capsys):
+    with Journal(journal_path(tmp_path)) as j:
+        for k, state in enumerate((0, 1, 2)):
+            j.record("state", "d1", state=state, quality=0, t=1000.0 + k)
+    assert main(["events", "--state-dir", str(tmp_path), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["order"] == "oldest first" and [e["t"] for e in doc["events"]] == [1000.0, 1001.0, 1002.0]
+    assert main(["events", "--state-dir", str(tmp_path)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert [line.split()[0] for line in lines] == [str(e["id"]) for e in doc["events"]]
+    assert main(["events", "--state-dir", str(tmp_path), "--limit", "2", "--json"]) == 0  # the newest two, oldest first
+    assert [e["t"] for e in json.loads(capsys.readouterr().out)["events"]] == [1001.0, 1002.0]
+
+
+def test_status_of_a_stopped_agent_is_as_of_its_stop(tmp_path, capsys):
+    """The states held for the time up to the stop, not up to now; the default state_dir is beside
+    the config file wherever the command runs."""
+    from agent.runtime.config import DEFAULT_CONFIG, check_config
+
+    cfg = tmp_path / "agent.toml"
+    text = DEFAULT_CONFIG.read_text().replace('profile = "profiles/', f'profile = "{DEFAULT_CONFIG.parent}/profiles/')
+    cfg.write_text(text)
+    c = check_config(cfg)
+    assert c.state_dir == tmp_path / "state"
+    now = time.time()
+    with Journal(journal_path(tmp_path / "state")) as j:
+        j.record("start", t=now - 3600)
+        j.record("state", c.drives[0].name, state=0, quality=0, t=now - 3000)
+        j.record("stop", t=now - 2400)
+    assert main(["status", "--config", str(cfg), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["agent"] == "stopped" and doc["as_of"] == pytest.approx(now - 2400)
+    assert doc["drives"][0]["age_s"] == pytest.approx(600.0, abs=0.2)
+    assert main(["status", "--config", str(cfg)]) == 0
+    out = capsys.readouterr().out
+    assert "as of the stop" in out and "for 10.0 min" in out

@@ -39,11 +39,12 @@ def cmd_events(args) -> None:
     kinds = [k for item in args.kind or () for k in item.split(",") if k]
     with Journal(path, readonly=True) as j:
         events = j.recent(args.drive, kinds=kinds, limit=args.limit)
+    events = events[::-1]  # the newest --limit, oldest first (newest last), like a log: text and JSON alike
     if args.json:
-        json.dump({"journal": str(path), "events": events}, sys.stdout)
+        json.dump({"journal": str(path), "order": "oldest first", "events": events}, sys.stdout)
         sys.stdout.write("\n")
         return
-    for e in reversed(events):  # oldest first, like a log
+    for e in events:
         when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(e["t"])) + f".{int(e['t'] % 1 * 1000):03d}"
         codes = " ".join(f"{k}={e[k]}({e[k + '_code']})" for k in ("state", "quality") if e[k + "_code"] is not None)
         detail = json.dumps(e["detail"], separators=(",", ":")) if e["detail"] else ""
@@ -62,9 +63,10 @@ def cmd_status(args) -> None:
     path = journal_path(cfg.state_dir)
     if not path.is_file():
         raise InputError(f"no journal at {path}: the agent has not run with this config yet", source=str(args.config))
-    now = time.time()
     with Journal(path, readonly=True) as j:
         life = j.recent(None, kinds=["start", "stop"], limit=1)
+        stopped = bool(life) and life[0]["kind"] == "stop"
+        now = life[0]["t"] if stopped else time.time()  # a stopped agent's states hold as of its stop
         drives = []
         for d in cfg.drives:
             last = j.recent(d.name, kinds=["state", "quality"], limit=1)
@@ -73,14 +75,15 @@ def cmd_status(args) -> None:
             drives.append({"drive": d.name, "state": e["state"] if e else None, "quality": e["quality"] if e else None,
                            "since": e["t"] if e else None, "age_s": round(now - e["t"], 1) if e else None,
                            "reason": reason})
-    agent = "never started" if not life else ("running" if life[0]["kind"] == "start" else "stopped")
+    agent = "never started" if not life else ("stopped" if stopped else "running")
     if args.json:
         json.dump({"journal": str(path), "agent": agent, "agent_since": life[0]["t"] if life else None,
-                   "drives": drives}, sys.stdout)
+                   "as_of": now, "drives": drives}, sys.stdout)
         sys.stdout.write("\n")
         return
     when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(life[0]["t"])) if life else ""
-    print(f"agent {agent}" + (f" since {when}" if when else "") + f" (journal {path})")
+    print(f"agent {agent}" + (f" since {when}" if when else "") + f" (journal {path})"
+          + ("; the states below are as of the stop" if stopped else ""))
     for d in drives:
         if d["state"] is None:
             print(f"{d['drive']}: no state recorded yet")

@@ -2,9 +2,9 @@
 
 Read with ``tomllib`` into frozen dataclasses and validated once, at load: unknown keys are
 rejected and every error names the key path, e.g. ``drives[0].source.port: must be a string``
-(:class:`agent.errors.InputError`, with the file as its source). Relative paths are relative to
-the config file, except the default ``state_dir`` ($STATE_DIRECTORY, else ``./state`` in the
-working directory). See ``config/agent.toml`` for an annotated example.
+(:class:`agent.errors.InputError`, with the file as its source). Every relative path is relative
+to the config file, and so is the default ``state_dir``: systemd's $STATE_DIRECTORY, else
+``state`` beside the config file. See ``config/agent.toml`` for an annotated example.
 """
 
 from __future__ import annotations
@@ -235,9 +235,12 @@ def _default_agent_id() -> str:
     return re.sub(r"[^a-z0-9_.\-]+", "-", socket.gethostname().lower()).strip("-.") or "agent"
 
 
-def _default_state_dir() -> Path:
+def _default_state_dir(config_file: Path | None) -> Path:
+    """systemd's $STATE_DIRECTORY, else ``state`` beside the config file (else in the working directory)."""
     env = os.environ.get("STATE_DIRECTORY", "").split(":")[0]
-    return Path(env) if env else Path("state").resolve()
+    if env:
+        return Path(env)
+    return (config_file.parent if config_file else Path.cwd()).resolve() / "state"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -245,7 +248,7 @@ class Config:
     schema_version: int = _opt()
     drives: tuple[DriveCfg, ...] = _opt()
     agent_id: str = _opt(None, check=_key_chunk)  #: default: the host name
-    state_dir: Path | None = _opt(None)  #: default: $STATE_DIRECTORY, else ./state
+    state_dir: Path | None = _opt(None)  #: default: $STATE_DIRECTORY, else ``state`` beside the config file
     pipeline: PipelineCfg = PipelineCfg()
     modbus_server: ModbusServerCfg = ModbusServerCfg()
     zenoh: ZenohCfg = ZenohCfg()
@@ -379,7 +382,7 @@ def _validate(cfg: Config) -> Config:
     if mb > MAX_BUFFER_MB:
         raise _KeyError("pipeline.window_s", f"the signal buffers of {len(drives)} drive(s) would take {mb:.0f} MB "
                         f"(at most {MAX_BUFFER_MB:g} MB): shorten the window or split the drives")
-    state_dir = cfg.state_dir or _default_state_dir()
+    state_dir = cfg.state_dir or _default_state_dir(cfg.source)
     if state_dir.exists() and not state_dir.is_dir():
         raise _KeyError("state_dir", f"{state_dir} exists and is not a directory")
     library = replace(cfg.library, path=cfg.library.path or state_dir / "library")
