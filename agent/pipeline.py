@@ -102,6 +102,7 @@ class DriveMonitor:
         self.n_hop = int(round(config.hop_s * self.rate))
         self.n_span = self.n_win * config.span_windows
         self.on_event = on_event or (lambda kind, detail: None)
+        self._judge: str | None = None  #: the baseline that judged last (an event when it changes)
         # circular buffer, one row per signal (_ROWS); each sample is transformed once, on arrival,
         # and stored twice (at i and i + n_span) so that any recent stretch is a contiguous view
         self._buf = np.zeros((len(_ROWS), 2 * self.n_span))
@@ -355,6 +356,10 @@ class DriveMonitor:
                 self.on_event(key, {"from": getattr(old, key), "to": getattr(new, key), "model": new.model,
                                     "fe_hz": new.fe_hz, "load_pct": new.load_pct, "peaks": new.peaks[:6],
                                     "reason": reason, "evidence": extra["evidence"]})
+        if new.model and new.model != self._judge:  # which baseline judges from here on, whatever the state
+            self.on_event("baseline", {"from": self._judge, "to": new.model, "fe_hz": new.fe_hz,
+                                       "load_pct": new.load_pct})
+            self._judge = new.model
         self.status = new
         return new
 

@@ -384,3 +384,25 @@ def test_a_baseline_with_thin_evidence_is_named_in_the_log(tmp_path, caplog):
     with caplog.at_level(logging.WARNING, logger="agent.library"):
         lib.reload()
     assert not caplog.records
+
+
+def test_a_switch_of_baseline_is_an_event_even_at_unchanged_quality(tmp_path):
+    """Two commissioned operating points, both healthy: the stream moves from one to the other, the
+    state and quality stay normal/good, and the switch of the judging baseline is an event (journaled
+    by the service) naming both."""
+    from agent.identify import operating_point, record_signals
+
+    base = healthy_baseline()
+    part2 = sim("healthy", 55.0, 6.0, 111)
+    op2 = operating_point(record_signals(part2, profile()), profile())
+    lib = ModelLibrary(tmp_path / "lib", Schedule(load_tol_pct=60.0))  # the mixed spans stay within both
+    lib.add("b80", base)
+    lib.add("b55", dataclasses.replace(base, operating_point={"fe_hz": op2["fe_hz"], "load_pct": op2["load_pct"]}))
+    events = []
+    mon = DriveMonitor("d1", profile(), lib, CFG, on_event=lambda kind, detail: events.append((kind, detail)))
+    out = feed(mon, [sim("healthy", 80.0, 6.0, 110), part2])
+    models = [st.model for _, st in out]
+    assert models[0] == "b80" and models[-1] == "b55"
+    switches = [d for k, d in events if k == "baseline"]
+    assert [(d["from"], d["to"]) for d in switches] == [(None, "b80"), ("b80", "b55")]
+    assert [k for k, _ in events if k in ("state", "quality")] == ["quality"]  # no_model -> good, once: nothing else tells

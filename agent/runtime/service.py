@@ -176,6 +176,8 @@ class Service:
                                 "%s", transition_line(drive, kind, detail))
         if kind in ("learning", "learned", "learning_refused"):
             self.journal.record("learning", drive, detail={"event": kind, **detail})
+        elif kind == "baseline":  # a switch between baselines leaves no state change: journal which one judges
+            self.journal.record("baseline", drive, detail=detail)
         elif kind == "gap":  # counted, not journalled: snapshot sources make one per snapshot
             self.drives[drive].gaps += 1
         if kind in ("state", "quality", "learning", "learned", "learning_refused"):
