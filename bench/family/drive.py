@@ -265,12 +265,13 @@ def _replace(drive: Drive, **changes) -> Drive:
 
 
 def _fastest_speed_rpm(drive: Drive) -> float:
-    """The speed at which the heaviest checked load needs 93 % of the inverter's linear voltage."""
+    """The speed at which the heaviest checked load needs 85 % of the inverter's linear voltage (the
+    margin a drive keeps for transients and harmonics)."""
     fm = drive.linear_flux_map()
     table = reference_table(drive, fm)
     torque = MAX_LOAD_PCT / 100.0 * drive.rated_torque_nm
     i_d, i_q = np.interp(torque, *table[:2]), np.interp(torque, table[0], table[2])
-    limit = 0.93 * drive.u_dc_v / math.sqrt(3.0)
+    limit = 0.85 * drive.u_dc_v / math.sqrt(3.0)
 
     def excess(rpm):
         v_d, v_q = steady_voltage(fm, drive.rs_ohm, rpm * math.pi / 30.0 * drive.pole_pairs, i_d, i_q)

@@ -15,8 +15,9 @@ Ranges (a size a good engineer would consider realistic and detectable):
 effect                  draw
 ======================  =============================================================================
 flux_harmonics          phase-a magnet flux psi_m cos(th) + sum psi_h cos(h th + phi_h): the 5th
-                        alone, the 7th alone, 5th + 7th, or 5th + 7th + 11th + 13th; psi_5, psi_7
-                        0.5-5 % of psi_m, psi_11, psi_13 0.2-1.5 %; phases uniform
+                        alone, the 7th alone, 5th + 7th, or 5th + 7th + 11th + 13th; log-uniform
+                        psi_5 0.5-3 %, psi_7 0.3-2 %, psi_11, psi_13 0.1-0.6 % of psi_m (back-EMF
+                        harmonics h psi_h of 1-15 % of the fundamental); phases uniform
 inverter_deadtime       switched inverter: dead time t_d 0.5-4 us (capped at 18 V of U_dc t_d f_sw)
                         and a device drop 0.7-2.5 V, each edge delayed by the phase current's sign
                         at that edge; averaged inverter: U_dt 2-20 V with a knee from the PWM ripple
@@ -53,6 +54,9 @@ from bench.family.machine import flux_from_currents, flux_map, is_convex
 
 SQRT3 = math.sqrt(3.0)
 HARMONIC_MIXES = ((5,), (7,), (5, 7), (5, 7, 11, 13))
+#: psi_h / psi_m per order: back-EMF harmonics h psi_h of 2.5-15 % (5th), 2-14 % (7th), 1-8 % (11th,
+#: 13th) of the fundamental, from distributed to concentrated windings
+HARMONIC_SHARE = {5: (0.005, 0.03), 7: (0.003, 0.02), 11: (0.001, 0.006), 13: (0.001, 0.006)}
 
 
 @dataclass(frozen=True)
@@ -64,7 +68,7 @@ class EffectFamily:
 
 def _draw_flux_harmonics(drive: Drive, rng) -> dict:
     orders = HARMONIC_MIXES[int(rng.integers(len(HARMONIC_MIXES)))]
-    share = [rng.uniform(0.005, 0.05) if h < 10 else rng.uniform(0.002, 0.015) for h in orders]
+    share = [math.exp(rng.uniform(*np.log(HARMONIC_SHARE[h]))) for h in orders]  # log-uniform
     return {"orders": list(orders), "psi_wb": [s * drive.psi_m_wb for s in share],
             "phase_rad": [float(p) for p in rng.uniform(0, 2 * np.pi, len(orders))]}
 

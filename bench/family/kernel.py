@@ -29,7 +29,7 @@ S_PSI_D, S_PSI_Q, S_OMEGA_M, S_THETA, S_INT_V, S_INT_I = 0, 1, 2, 3, 4, 7
  P_HOLD_DQ, P_DELAY, P_COMP, P_KP_D, P_KP_Q, P_KI_D, P_KI_Q, P_LD_HAT, P_LQ_HAT, P_PSI_HAT, P_U_MAX,
  P_SPEED_LOOP, P_KP_W, P_KI_W, P_KP_LOAD, P_KI_LOAD, P_REV_T, P_REV_PHASE, P_RIPPLE_T, P_RIPPLE_W,
  P_RIPPLE_PHASE, P_OFFSET_A, P_OFFSET_B, P_OFFSET_C, P_GAIN_A, P_GAIN_B, P_GAIN_C, P_ADC_STEP, P_ADC_FS,
- P_WINDOW_PHASE, N_PAR) = range(43)
+ P_WINDOW_PHASE, P_T_MAX, N_PAR) = range(44)
 
 # per control interval outputs
 (C_IA, C_IB, C_IC, C_THETA, C_OMEGA, C_VD, C_VQ, C_VA, C_VB, C_VC, C_TORQUE, C_PSI_D, C_PSI_Q, C_ID, C_IQ,
@@ -195,7 +195,10 @@ def run_drive(par, fm, hs, hm, ha, hp, r_s, noise_ctrl, torque_cmd, omega_ref, t
         if par[P_SPEED_LOOP] > 0.5:
             err_w = omega_ref[k] - omega_m
             torque_ref = par[P_KP_W] * err_w + int_w
-            int_w += par[P_KI_W] * tc * err_w
+            if abs(torque_ref) > par[P_T_MAX]:  # the torque limit, integration stopped
+                torque_ref = math.copysign(par[P_T_MAX], torque_ref)
+            else:
+                int_w += par[P_KI_W] * tc * err_w
             t_load = torque_cmd[k]
         else:
             torque_ref = torque_cmd[k]

@@ -15,6 +15,8 @@ from bench.family.effects import EFFECTS, saturation_map, voltage_path
 from bench.family.machine import flux_from_currents, harmonic_terms
 
 MARGIN = 4  #: record samples simulated after the record (the voltage channel's extra delay reads ahead)
+ACCEL_TORQUE = 0.3  #: per unit of rated torque: the speed reference's ramp accelerates the inertia with it
+TORQUE_LIMIT = 2.0  #: per unit of rated torque: the speed loop's output limit
 
 
 def _warmup_s(drive: Drive) -> float:
@@ -109,9 +111,10 @@ def simulate_detail(drive: Drive, effects: dict | None, load_pct: float, seconds
     if excitation == "load_step":
         step = rng.uniform(10.0, 30.0) * (1.0 if load_pct < 60.0 else -1.0)  # % of rated
         load += after * step / 100.0 * drive.rated_torque_nm
-    elif excitation == "speed_step":
+    elif excitation == "speed_step":  # through the drive's ramp: the acceleration takes ACCEL_TORQUE
         step = rng.uniform(5.0, 15.0) * (1.0 if drive.operating_speed_rpm < 0.7 * drive.rated_speed_rpm else -1.0)
-        omega_ref += after * step / 100.0 * omega_op
+        ramp_s = max(drive.inertia_kgm2 * abs(step) / 100.0 * omega_op / (ACCEL_TORQUE * drive.rated_torque_nm), 5e-3)
+        omega_ref += np.clip((t_rel - step_at) / ramp_s, 0.0, 1.0) * step / 100.0 * omega_op
     elif excitation != "constant" and excitation != "load_ripple":
         raise ValueError(f"unknown excitation {excitation!r}")
     ripple_t = rng.uniform(0.02, 0.10) * drive.rated_torque_nm if excitation == "load_ripple" else 0.0
@@ -224,7 +227,7 @@ def _kernel_parameters(drive: Drive, effects: dict, ripple_t: float, ripple_w: f
         K.P_OFFSET_A: offset[0], K.P_OFFSET_B: offset[1], K.P_OFFSET_C: offset[2],
         K.P_GAIN_A: 1.0 + gain[0], K.P_GAIN_B: 1.0 + gain[1], K.P_GAIN_C: 1.0 + gain[2],
         K.P_ADC_STEP: 2.0 * drive.current_full_scale_a / 2 ** drive.adc_bits, K.P_ADC_FS: drive.current_full_scale_a,
-        K.P_WINDOW_PHASE: lag - drive.voltage_filter_delay,
+        K.P_WINDOW_PHASE: lag - drive.voltage_filter_delay, K.P_T_MAX: TORQUE_LIMIT * drive.rated_torque_nm,
     }
     for index, value in values.items():
         par[index] = float(value)
