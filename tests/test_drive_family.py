@@ -72,6 +72,23 @@ def test_every_attribute_is_drawn_over_its_range(drives):
     assert 0.04 <= fraction.min() < 0.05 and 0.13 < fraction.max() <= 0.15
     full_scale = np.array([d.current_full_scale_a / d.i_rated_peak for d in drives])
     assert 2.0 <= full_scale.min() < 2.1 and 2.9 < full_scale.max() <= 3.0
+    rated_w = np.array([d.omega_m_rated for d in drives])
+    torque = np.array(values["rated_torque_nm"])
+    for x, lo, hi in ((np.array(values["inertia_kgm2"]) * rated_w / torque, 0.02, 0.5),  # start time, s
+                      (np.array(values["friction_nm_s"]) * rated_w / torque, 0.003, 0.02),
+                      (np.array(values["current_noise_a"]) / np.array([d.i_rated_peak for d in drives]), 0.0005, 0.005),
+                      (np.array(values["voltage_full_scale_v"]) / np.array(values["u_dc_v"]), 0.7, 1.0),
+                      (np.array(values["driven_teeth"]) / np.array(values["driving_teeth"]), 1.0, 5.0),
+                      (np.array(values["rated_voltage_v"]) * math.sqrt(2) / np.array(values["u_dc_v"]), 0.78, 0.92)):
+        assert lo - 1e-9 <= x.min() < lo + 0.15 * (hi - lo) and hi - 0.15 * (hi - lo) < x.max() <= hi + 0.03 * hi
+    for name, rel in (("ctrl_rs_ohm", "rs_ohm"), ("ctrl_ld_h", "ld_h"), ("ctrl_lq_h", "lq_h"), ("ctrl_psi_m_wb", "psi_m_wb")):
+        err = np.array(values[name]) / np.array(values[rel]) - 1
+        assert -0.08 <= err.min() < -0.06 and 0.06 < err.max() <= 0.08, name
+    for mech, lo, hi in (("speed_loop", 3, 20), ("load_machine", 10, 40)):
+        bw = np.array([d.speed_bandwidth_hz for d in drives if d.mechanics == mech])
+        assert lo <= bw.min() < lo + 0.2 * (hi - lo) and hi - 0.2 * (hi - lo) < bw.max() <= hi
+    integral = np.array([d.integral_time_s * 2 * math.pi * d.current_bandwidth_hz for d in drives])
+    assert 4 <= integral.min() < 4.5 and 9.5 < integral.max() <= 10  # alpha_c T_i (L_q/R_s is longer)
     delays = np.array([d.voltage_filter_delay for d in drives if d.voltage_source == "measured"])
     assert {0.0, 1.0} <= set(delays) and ((delays > 0) & (delays < 1)).any()
     for d in drives:

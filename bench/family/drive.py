@@ -61,7 +61,7 @@ class Drive:
     # --- control and mechanics
     current_reference: str  #: "id0" or "mtpa"
     current_bandwidth_hz: float
-    integral_time_s: float  #: current PI's integral time (<= L/R: IMC or a faster integrator)
+    integral_time_s: float  #: current PI's integral time, 4-10 / (2 pi bandwidth), at most L_q/R_s
     ctrl_rs_ohm: float  #: the controller's parameter estimates (commissioning errors of a few %)
     ctrl_ld_h: float
     ctrl_lq_h: float

@@ -21,7 +21,8 @@ flux_harmonics          phase-a magnet flux psi_m cos(th) + sum psi_h cos(h th +
 inverter_deadtime       switched inverter: dead time t_d 0.5-4 us (capped at 18 V of U_dc t_d f_sw)
                         and a device drop 0.7-2.5 V, each edge delayed by the phase current's sign
                         at that edge; averaged inverter: U_dt 2-20 V with a knee from the PWM ripple
-                        (0.3-1 of U_dc/(24 L_d f_sw), 0.2-10 % of rated current)
+                        (1-2 U_dc/(24 L_d f_sw), the knees the switched inverter shows; within
+                        0.2-10 % of rated current)
 voltage_delay           an extra voltage-channel delay of -1..+2 samples (|d| >= 0.25; fractional by
                         linear interpolation between samples), on top of the drive's own path
 current_offset          per-phase sensor offsets, each 0.5-3 % of rated peak current with a random
@@ -78,7 +79,7 @@ def _draw_deadtime(drive: Drive, rng) -> dict:
         t_dead = min(rng.uniform(0.5e-6, 4e-6), 18.0 / (drive.u_dc_v * drive.switching_hz))
         return {"t_dead_s": t_dead, "u_on_v": rng.uniform(0.7, 2.5)}
     ripple = drive.u_dc_v / (24.0 * drive.ld_h * drive.switching_hz)
-    knee = float(np.clip(rng.uniform(0.3, 1.0) * ripple, 0.002 * drive.i_rated_peak, 0.1 * drive.i_rated_peak))
+    knee = float(np.clip(rng.uniform(1.0, 2.0) * ripple, 0.002 * drive.i_rated_peak, 0.1 * drive.i_rated_peak))
     return {"U_dt_v": rng.uniform(2.0, 20.0), "knee_a": knee}
 
 
@@ -219,8 +220,10 @@ def truth(drive: Drive, effect_id: str, draw: dict, records) -> dict:
       magnet flux on d (|psi_5 e^{j phi_5} + psi_7 e^{j phi_7}|) and q (|psi_7 e^{j phi_7} - psi_5 e^{j phi_5}|);
     * inverter_deadtime: ``U_dt_V`` = U_dc t_d f_sw + device drop (switched) or the drawn U_dt
       (averaged), the mean phase-voltage loss U_dt sign(i) away from zero current; ``knee_A``: the
-      averaged inverter's clip(i/knee) knee, or for the switched inverter the mean |carrier ripple|
-      of the phase current at its switching edges (records' meta);
+      knee of the loss U_dt clip(i/knee) (common mode removed) over the interval's mean current:
+      drawn for the averaged inverter; for the switched one fitted with U_dt (least squares) to the
+      records' per-interval loss of the applied voltage against the command (records' meta, mean),
+      with ``edge_ripple_A``, the mean |carrier ripple| of the phase current at its switching edges;
     * magnetic_saturation: ``lq_drop_at_rated`` = 1 - psi_q(0, I_rated)/(L_q I_rated) (I_rated peak),
       and ``psi_d_drop_at_rated`` = 1 - psi_d(0, I_rated)/psi_m;
     * speed_ripple: ``omega_e_ripple_rad_s``: the amplitude of the true omega_e at the shaft's
@@ -251,7 +254,8 @@ def truth(drive: Drive, effect_id: str, draw: dict, records) -> dict:
     if effect_id == "inverter_deadtime":
         if drive.inverter == "switched":
             return {"U_dt_V": drive.u_dc_v * draw["t_dead_s"] * drive.switching_hz + draw["u_on_v"],
-                    "knee_A": float(np.mean([m["edge_ripple_A"] for m in metas])) if metas else float("nan")}
+                    "knee_A": float(np.mean([m["deadtime_knee_A"] for m in metas])) if metas else float("nan"),
+                    "edge_ripple_A": float(np.mean([m["edge_ripple_A"] for m in metas])) if metas else float("nan")}
         return {"U_dt_V": draw["U_dt_v"], "knee_A": draw["knee_a"]}
     if effect_id == "magnetic_saturation":
         fm = saturation_map(drive, draw)

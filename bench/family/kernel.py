@@ -33,7 +33,7 @@ S_PSI_D, S_PSI_Q, S_OMEGA_M, S_THETA, S_INT_V, S_INT_I = 0, 1, 2, 3, 4, 7
 
 # per control interval outputs
 (C_IA, C_IB, C_IC, C_THETA, C_OMEGA, C_VD, C_VQ, C_VA, C_VB, C_VC, C_TORQUE, C_PSI_D, C_PSI_Q, C_ID, C_IQ,
- N_CTRL_OUT) = range(16)
+ C_INT_VA, C_INT_VB, C_INT_VC, N_CTRL_OUT) = range(19)
 # per record sample outputs
 (R_IA, R_IB, R_IC, R_THETA, R_OMEGA, R_INT_VA, R_INT_VB, R_INT_VC, R_INT_I_HALF_A, R_INT_I_HALF_B,
  R_INT_I_HALF_C, R_INT_V_WIN_A, R_INT_V_WIN_B, R_INT_V_WIN_C, N_REC_OUT) = range(15)
@@ -231,6 +231,7 @@ def run_drive(par, fm, hs, hm, ha, hp, r_s, noise_ctrl, torque_cmd, omega_ref, t
         h_d, h_q, _, _ = harmonic_flux(theta, hs, hm, ha, hp)
         row[C_PSI_D], row[C_PSI_Q] = y[S_PSI_D] + h_d, y[S_PSI_Q] + h_q
         row[C_ID], row[C_IQ] = i_d_true, i_q_true
+        row[C_INT_VA], row[C_INT_VB], row[C_INT_VC] = y[S_INT_V], y[S_INT_V + 1], y[S_INT_V + 2]
         # --- the command acting in this interval (computed now, or one interval ago)
         if par[P_DELAY] > 0.5:
             act_d, act_q, act_a, act_b, act_c = pend_d, pend_q, pend_abc[0], pend_abc[1], pend_abc[2]

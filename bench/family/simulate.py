@@ -7,6 +7,7 @@ import json
 import math
 
 import numpy as np
+import scipy.optimize
 
 from agent.records import Record
 from bench.family import kernel as K
@@ -49,6 +50,30 @@ def _shaft_ripple(t: np.ndarray, omega_e: np.ndarray, pole_pairs: int) -> float:
     basis = np.column_stack((np.ones_like(t), t, np.cos(w_m * t), np.sin(w_m * t)))
     coef = np.linalg.lstsq(basis, omega_e, rcond=None)[0]
     return float(math.hypot(coef[2], coef[3]))
+
+
+def _deadtime_knee(drive: Drive, ctrl: np.ndarray, t_rel: np.ndarray, seconds: float) -> float:
+    """The knee (A) of U_dt clip(i/knee) fitted with U_dt to the record's loss of the applied phase
+    voltage against the command acting in each control interval, over the interval's mean true
+    current: the averaged inverter's drawn knee, or the switched inverter's (its carrier ripple)."""
+    if drive.inverter == "averaged":
+        return float("nan")
+    tc = 1.0 / drive.control_rate_hz
+    inside = np.flatnonzero((t_rel >= 0.0) & (t_rel < seconds))[:-1]
+    applied = (ctrl[inside + 1, K.C_INT_VA:K.C_INT_VC + 1] - ctrl[inside, K.C_INT_VA:K.C_INT_VC + 1]).T / tc
+    source = inside - drive.computation_delay
+    loss = applied - ctrl[source, K.C_VA:K.C_VC + 1].T
+    current = [_inv_park(ctrl[j, K.C_ID], ctrl[j, K.C_IQ], ctrl[j, K.C_THETA]) for j in (inside, inside + 1)]
+    current = 0.5 * (current[0] + current[1])
+    loss -= loss.mean(axis=0)
+
+    def residual(p):
+        shape = np.clip(current / p[1], -1.0, 1.0)
+        return (loss + p[0] * (shape - shape.mean(axis=0))).ravel()
+
+    guess = (float(np.median(np.abs(loss))) * 1.5, 0.01 * drive.i_rated_peak)
+    fit = scipy.optimize.least_squares(residual, guess, bounds=([0.0, 1e-6], [np.inf, np.inf]), x_scale="jac")
+    return float(fit.x[1])
 
 
 def simulate(drive: Drive, effects: dict | None, load_pct: float, seconds: float, seed: int,
@@ -183,6 +208,7 @@ def simulate_detail(drive: Drive, effects: dict | None, load_pct: float, seconds
             "dR_dt_mid_ohm_per_s": float(slope_mid),
             "omega_e_ripple_rad_s": _shaft_ripple(t, omega, p),
             "edge_ripple_A": float(edge[0] / edge[1]) if edge[1] else 0.0,
+            "deadtime_knee_A": _deadtime_knee(drive, ctrl, t_rel, seconds) if "inverter_deadtime" in effects else 0.0,
             "delay_samples": delay, "advance_samples": advance}
     record = Record(t=t, v_abc=v_rec[:, keep], i_abc=i_rec[:, keep],
                     theta_e=theta.copy() if drive.encoder else None, omega_e=omega.copy() if drive.encoder else None,
