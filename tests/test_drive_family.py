@@ -81,7 +81,7 @@ def test_every_attribute_is_drawn_over_its_range(drives):
                       (np.array(values["driven_teeth"]) / np.array(values["driving_teeth"]), 1.0, 5.0),
                       (np.array(values["rated_voltage_v"]) * math.sqrt(2) / np.array(values["u_dc_v"]), 0.78, 0.92)):
         assert lo - 1e-9 <= x.min() < lo + 0.15 * (hi - lo) and hi - 0.15 * (hi - lo) < x.max() <= hi + 0.03 * hi
-    for name, rel in (("ctrl_rs_ohm", "rs_ohm"), ("ctrl_ld_h", "ld_h"), ("ctrl_lq_h", "lq_h"), ("ctrl_psi_m_wb", "psi_m_wb")):
+    for name, rel in (("ctrl_ld_h", "ld_h"), ("ctrl_lq_h", "lq_h"), ("ctrl_psi_m_wb", "psi_m_wb")):
         err = np.array(values[name]) / np.array(values[rel]) - 1
         assert -0.08 <= err.min() < -0.06 and 0.06 < err.max() <= 0.08, name
     for mech, lo, hi in (("speed_loop", 3, 20), ("load_machine", 10, 40)):

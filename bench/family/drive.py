@@ -22,7 +22,7 @@ import numpy as np
 import scipy.optimize
 
 from agent.profile import DriveProfile, parse_profile
-from bench.family.machine import flux_map, torque_nm
+from bench.family.machine import flux_from_currents_array, flux_map, inverse_inductance, torque_nm
 
 COPPER_PER_K = 0.00393  #: copper's resistance temperature coefficient at 20 C, 1/K
 EXCITATIONS = ("constant", "load_ripple", "load_step", "speed_step")
@@ -62,9 +62,8 @@ class Drive:
     current_reference: str  #: "id0" or "mtpa"
     current_bandwidth_hz: float
     integral_time_s: float  #: current PI's integral time, 4-10 / (2 pi bandwidth), at most L_q/R_s
-    ctrl_rs_ohm: float  #: the controller's parameter estimates (commissioning errors of a few %)
-    ctrl_ld_h: float
-    ctrl_lq_h: float
+    ctrl_ld_h: float  #: the controller's estimates (commissioning errors up to 8 %): its decoupling, and
+    ctrl_lq_h: float  #: the same relative error on its gain schedule (incremental L at the reference)
     ctrl_psi_m_wb: float
     mechanics: str  #: "load_machine" (a stiff speed-controlled load machine sets the speed; the drive follows a torque command) or "speed_loop" (the drive's speed PI against a load torque)
     speed_bandwidth_hz: float  #: the bandwidth of whichever speed loop holds the speed
@@ -131,6 +130,7 @@ class _Draw:
             raise TypeError(f"unknown Drive attribute(s): {', '.join(sorted(unknown))}")
 
     def __call__(self, name, value):
+        value = value.item() if isinstance(value, np.generic) else value  # plain Python types: JSON-able
         return self.overrides.get(name, value)
 
     def uniform(self, name, lo, hi):
@@ -214,9 +214,9 @@ def draw_drive(seed: int, **overrides) -> Drive:
                   else d.rng.uniform(0.05, 0.15) * control_rate)
     alpha_c = 2.0 * math.pi * bandwidth
     integral_time = d("integral_time_s", min(lq / rs, d.rng.uniform(4.0, 10.0) / alpha_c))
-    err = d.rng.uniform(-0.08, 0.08, 4)
-    ctrl_rs, ctrl_ld = d("ctrl_rs_ohm", rs * (1 + err[0])), d("ctrl_ld_h", ld * (1 + err[1]))
-    ctrl_lq, ctrl_psi = d("ctrl_lq_h", lq * (1 + err[2])), d("ctrl_psi_m_wb", psi_m * (1 + err[3]))
+    err = d.rng.uniform(-0.08, 0.08, 3)
+    ctrl_ld, ctrl_lq = d("ctrl_ld_h", ld * (1 + err[0])), d("ctrl_lq_h", lq * (1 + err[1]))
+    ctrl_psi = d("ctrl_psi_m_wb", psi_m * (1 + err[2]))
     mechanics = d.choice("mechanics", ("load_machine", "speed_loop"))
     speed_bw = d("speed_bandwidth_hz", d.rng.uniform(10.0, 40.0) if mechanics == "load_machine"
                  else d.rng.uniform(3.0, 20.0))
@@ -247,7 +247,7 @@ def draw_drive(seed: int, **overrides) -> Drive:
                   control_rate_hz=control_rate, updates_per_carrier=updates, inverter=inverter,
                   voltage_hold=hold, computation_delay=delay, angle_compensation=compensation,
                   current_reference=reference, current_bandwidth_hz=bandwidth, integral_time_s=integral_time,
-                  ctrl_rs_ohm=ctrl_rs, ctrl_ld_h=ctrl_ld, ctrl_lq_h=ctrl_lq, ctrl_psi_m_wb=ctrl_psi,
+                  ctrl_ld_h=ctrl_ld, ctrl_lq_h=ctrl_lq, ctrl_psi_m_wb=ctrl_psi,
                   mechanics=mechanics, speed_bandwidth_hz=speed_bw, inertia_kgm2=inertia, friction_nm_s=friction,
                   operating_speed_rpm=speed, excitation=excitation, voltage_source=source,
                   command_logged_as=logged, voltage_filter_delay=filter_delay, current_sampling=sampling,
@@ -281,9 +281,10 @@ def _fastest_speed_rpm(drive: Drive) -> float:
     return top if excess(top) < 0 else scipy.optimize.brentq(excess, 1.0, top)
 
 
-def reference_table(drive: Drive, fm: np.ndarray, points: int = 161) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(torque N m, i_d* A, i_q* A): the drive's torque-to-current table for its flux map ``fm``
-    (commissioned on the true machine), i_d = 0 or maximum torque per ampere, up to 2.2 rated torque."""
+def reference_table(drive: Drive, fm: np.ndarray, points: int = 161) -> tuple[np.ndarray, ...]:
+    """(torque N m, i_d* A, i_q* A, L_d H, L_q H): the drive's torque-to-current table for its flux map
+    ``fm`` (commissioned on the true machine), i_d = 0 or maximum torque per ampere, up to 2.5 rated
+    current, with the incremental inductances there (the current controller's gain schedule)."""
     i_max = 2.5 * drive.i_rated_peak
     mags = np.linspace(0.0, i_max, points)
     if drive.current_reference == "id0":
@@ -297,9 +298,18 @@ def reference_table(drive: Drive, fm: np.ndarray, points: int = 161) -> tuple[np
         i_d, i_q = -mags * np.sin(angles[best]), mags * np.cos(angles[best])
     keep = np.concatenate(([True], np.diff(torque) > 0))
     torque, i_d, i_q = torque[keep], i_d[keep], i_q[keep]
+    l_d, l_q = incremental_inductances(i_d, i_q, fm)
     # odd in torque: a negative torque reverses i_q (the map is even in psi_q)
     return (np.concatenate((-torque[:0:-1], torque)), np.concatenate((i_d[:0:-1], i_d)),
-            np.concatenate((-i_q[:0:-1], i_q)))
+            np.concatenate((-i_q[:0:-1], i_q)), np.concatenate((l_d[:0:-1], l_d)), np.concatenate((l_q[:0:-1], l_q)))
+
+
+def incremental_inductances(i_d, i_q, fm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Diagonal of the incremental inductance matrix d psi/d i (H) at the currents (A)."""
+    psi_d, psi_q = flux_from_currents_array(np.asarray(i_d, float), np.asarray(i_q, float), fm)
+    a_dd, a_dq, a_qq = (np.array(x) for x in zip(*(inverse_inductance(a, b, fm) for a, b in zip(psi_d, psi_q))))
+    det = a_dd * a_qq - a_dq * a_dq
+    return a_qq / det, a_dd / det
 
 
 def profile(drive: Drive, nameplate: bool = False) -> DriveProfile:

@@ -100,7 +100,7 @@ def _draw_gain(drive: Drive, rng) -> dict:
     rel = rng.uniform(0.01, 0.05, 2) * rng.choice([-1.0, 1.0], 2)
     if rng.random() < 1 / 3:
         rel[int(rng.integers(2))] = 0.0
-    return {"gain_error": [g_a, (1 + g_a) * (1 + rel[0]) - 1, (1 + g_a) * (1 + rel[1]) - 1]}
+    return {"gain_error": [float(g) for g in (g_a, (1 + g_a) * (1 + rel[0]) - 1, (1 + g_a) * (1 + rel[1]) - 1)]}
 
 
 def _draw_drift(drive: Drive, rng) -> dict:

@@ -132,22 +132,21 @@ def _quantise(x, step, full_scale):
     return min(full_scale, max(-full_scale, step * np.round(x / step))) if step > 0.0 else x
 
 
-@njit(cache=True)
-def _reference_currents(torque, tq_grid, id_tab, iq_tab):
-    """(i_d*, i_q*) (A) of a torque command (N m) by linear interpolation in the drive's table."""
-    return np.interp(torque, tq_grid, id_tab), np.interp(torque, tq_grid, iq_tab)
 
 
 @njit(cache=True)
 def run_drive(par, fm, hs, hm, ha, hp, r_s, noise_ctrl, torque_cmd, omega_ref, tq_grid, id_tab, iq_tab,
-              y0, integrators0, n_rec):
+              ld_tab, lq_tab, y0, integrators0, n_rec):
     """Simulate ``r_s.size`` control intervals of length ``par[P_TC]`` from the state ``y0``.
 
     Per control interval k: ``r_s[k]`` (ohm), ``noise_ctrl[k]`` (A, the current sensors' noise),
     ``torque_cmd[k]`` (N m: the PMSM's torque command when the load machine imposes the speed, else
     the load torque), ``omega_ref[k]`` (mechanical rad/s: the speed loop's reference, the load
     machine's or the drive's). ``integrators0``: PI integrators (u_d, u_q in V, speed loop N m, load
-    machine N m) and the pending command (u_d, u_q, u_a, u_b, u_c). Returns (per-interval outputs,
+    machine N m) and the pending command (u_d, u_q, u_a, u_b, u_c). The table (``tq_grid`` N m ->
+    i_d*, i_q* A, incremental L_d, L_q H) sets the current references and schedules the PI gains,
+    ``par[P_KP_D]`` being the bandwidth times the controller's relative L_d estimate (1/s), and so on.
+    Returns (per-interval outputs,
     per-record-sample outputs, [sum |carrier ripple at edges| (A), number of edges])."""
     n_ctrl = r_s.size
     tc = par[P_TC]
@@ -205,21 +204,22 @@ def run_drive(par, fm, hs, hm, ha, hp, r_s, noise_ctrl, torque_cmd, omega_ref, t
             err_w = omega_ref[k] - omega_m
             t_load = int_load - par[P_KP_LOAD] * err_w
             int_load -= par[P_KI_LOAD] * tc * err_w
-        i_d_ref, i_q_ref = _reference_currents(torque_ref, tq_grid, id_tab, iq_tab)
+        i_d_ref, i_q_ref = np.interp(torque_ref, tq_grid, id_tab), np.interp(torque_ref, tq_grid, iq_tab)
+        l_d, l_q = np.interp(torque_ref, tq_grid, ld_tab), np.interp(torque_ref, tq_grid, lq_tab)
         # --- current PI in dq with decoupling, the voltage limited to the inverter's linear range
         e_d = i_d_ref - i_d
         e_q = i_q_ref - i_q
         dec_d = -w * par[P_LQ_HAT] * i_q
         dec_q = w * (par[P_LD_HAT] * i_d + par[P_PSI_HAT])
-        u_d = par[P_KP_D] * e_d + int_d + dec_d
-        u_q = par[P_KP_Q] * e_q + int_q + dec_q
+        u_d = par[P_KP_D] * l_d * e_d + int_d + dec_d
+        u_q = par[P_KP_Q] * l_q * e_q + int_q + dec_q
         mag = math.hypot(u_d, u_q)
         if mag > par[P_U_MAX]:
             u_d *= par[P_U_MAX] / mag
             u_q *= par[P_U_MAX] / mag
         else:
-            int_d += par[P_KI_D] * tc * e_d
-            int_q += par[P_KI_Q] * tc * e_q
+            int_d += par[P_KI_D] * l_d * tc * e_d
+            int_q += par[P_KI_Q] * l_q * tc * e_q
         comp = (par[P_DELAY] + 0.5) * w * tc if par[P_COMP] > 0.5 else 0.0
         ua, ub, uc = _inv_park_clarke(u_d, u_q, math.cos(theta + comp), math.sin(theta + comp))
         row = ctrl[k]
