@@ -372,3 +372,17 @@ def test_resistance_drift_and_speed_ripple_truths():
     amp = truth(d, "speed_ripple", ripple, recs)["omega_e_ripple_rad_s"]
     quiet = simulate(d, {}, 60, 0.5, 0).meta["omega_e_ripple_rad_s"]
     assert amp > 20 * quiet and recs[0].theta_e is None
+
+
+def test_records_are_valid_contract_records(tmp_path):
+    """Each sampling mode's record passes the project's validation against the drive's profile and
+    survives the NPZ round trip with its meta."""
+    from agent.records import load_record, save_record
+
+    for sampling in ("centre", "average", "async"):
+        d = draw_drive(18, current_sampling=sampling, encoder=sampling != "async")
+        rec = simulate(d, {"current_offset": draw_effect(d, "current_offset", 1)}, 80, 0.05, 1)
+        back = load_record(save_record(rec, tmp_path / f"{sampling}.npz"), profile(d), min_samples=rec.n)
+        assert np.array_equal(back.i_abc, rec.i_abc) and back.meta["drive_seed"] == 18
+        assert (back.theta_e is None) == (sampling == "async")
+        assert json.loads(back.meta["effects"])["current_offset"]["offset_a"]

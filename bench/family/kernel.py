@@ -146,8 +146,8 @@ def run_drive(par, fm, hs, hm, ha, hp, r_s, noise_ctrl, torque_cmd, omega_ref, t
     machine N m) and the pending command (u_d, u_q, u_a, u_b, u_c). The table (``tq_grid`` N m ->
     i_d*, i_q* A, incremental L_d, L_q H) sets the current references and schedules the PI gains,
     ``par[P_KP_D]`` being the bandwidth times the controller's relative L_d estimate (1/s), and so on.
-    Returns (per-interval outputs,
-    per-record-sample outputs, [sum |carrier ripple at edges| (A), number of edges])."""
+    Returns (per-interval outputs, per-record-sample outputs, [sum |carrier ripple at edges| (A),
+    number of edges])."""
     n_ctrl = r_s.size
     tc = par[P_TC]
     ts = par[P_TS]
@@ -171,6 +171,7 @@ def run_drive(par, fm, hs, hm, ha, hp, r_s, noise_ctrl, torque_cmd, omega_ref, t
     edge_i = np.zeros(6)
     edge_phase = np.zeros(6, dtype=np.int64)
     ripple = np.zeros(2)
+    meas = np.zeros(3)
     m0, m_half, m_win = 0, 0, 0  # next record instants (phase 0, 0.5 and the voltage window's phase)
     w_phase = par[P_WINDOW_PHASE]
     offs = (par[P_OFFSET_A], par[P_OFFSET_B], par[P_OFFSET_C])
@@ -183,7 +184,6 @@ def run_drive(par, fm, hs, hm, ha, hp, r_s, noise_ctrl, torque_cmd, omega_ref, t
         i_d_true, i_q_true = currents_from_flux(y[S_PSI_D], y[S_PSI_Q], fm)
         ia, ib, ic = _inv_park_clarke(i_d_true, i_q_true, cos_t, sin_t)
         true_abc = (ia, ib, ic)
-        meas = np.zeros(3)
         for x in range(3):
             meas[x] = _quantise(gains[x] * true_abc[x] + offs[x] + noise_ctrl[k, x], par[P_ADC_STEP], par[P_ADC_FS])
         theta = y[S_THETA]

@@ -1,5 +1,19 @@
 """Records of a drawn drive: set up the kernel from the drive and its hidden effects, warm up at the
-operating point, then sample the record the way the drive (or a DAQ beside it) does."""
+operating point, then sample the record the way the drive (or a DAQ beside it) does.
+
+Channels (CONTRACT section 3), by the drive's configuration:
+
+* ``ia, ib, ic``: the current sensors (gain, offset: the hidden effects) plus white noise, through
+  the ADC (``adc_bits`` over +- ``current_full_scale_a``): the controller's own samples at the
+  carrier's centre ("centre"), the average over [t_k - T_s/2, t_k + T_s/2] ("average"), or
+  instantaneous samples of a record clock that is not the PWM's ("async", carrier ripple visible);
+* ``va, vb, vc`` (phase-to-neutral): the command the controller computed at t_k ("reference",
+  as its phase commands or as its dq command at the sample's angle), or the applied voltage
+  averaged over [t_k - d T_s, t_k + (1 - d) T_s] (d = ``voltage_filter_delay``) plus noise through
+  the voltage ADC ("measured"); the voltage_delay effect shifts this channel further;
+* ``theta_e`` (continuous, rad) and ``omega_e`` (rad/s), the true rotor's, when the drive has an
+  encoder.
+"""
 
 from __future__ import annotations
 
