@@ -33,7 +33,11 @@ MAX_LOAD_PCT = 110.0  #: the heaviest load the operating speed is checked for (t
 class Drive:
     """One drawn drive (SI units; angles rad; 'pu' of the rated phase voltage and current).
 
-    The machine is linear and ideal here; the hidden effects (``bench.family.effects``) add to it.
+    This is the null drive: a linear machine with a sinusoidal magnet flux, an ideal inverter,
+    ideal current sensors (noise and ADC only), a constant winding temperature and a smooth shaft,
+    with its own voltage path (hold, computation delay, angle compensation, command logging or the
+    measured voltage's window: ``bench.family.effects.voltage_path``). The hidden effects
+    (``bench.family.effects``) add to it.
     """
 
     seed: int
