@@ -44,10 +44,18 @@ def record_signals(record: Record, profile: DriveProfile) -> Signals:
 
 
 def operating_point(sig: Signals, profile: DriveProfile) -> dict[str, float]:
-    """Electrical frequency (Hz) and load (% of rated power, from eq. 10's P_in) of a record."""
-    p_in = float(np.mean(sig.power))
-    return {"fe_hz": float(np.mean(sig.omega_e) / (2 * np.pi)),
-            "load_pct": 100.0 * p_in / profile.motor.rated_power_w}
+    """A record's operating point as a drive shows it: ``fe_hz`` (electrical frequency, Hz) and
+    ``load_pct``, the torque over the rated torque (%), 1.5 p psi_m i_q with psi_m from the
+    nameplate (``psi_m_wb`` or the back-EMF constant), else from the rating (rated torque at rated
+    current, i_d = 0: then the q current over the rated current); where the profile has neither,
+    the input power over the rated power. ``input_power_pct`` is that input power (eq. 10's P_in)
+    in any case. One definition from the profile alone, so that a baseline and the running agent
+    read the same figure."""
+    p_in = 100.0 * float(np.mean(sig.power)) / profile.motor.rated_power_w
+    m = profile.motor
+    psi = (profile.nameplate.psi_m(m.pole_pairs) if profile.nameplate else None) or m.psi_m_from_rating
+    load = p_in if psi is None else 100.0 * 1.5 * m.pole_pairs * psi * float(np.mean(sig.i_dq[1])) / m.rated_torque_nm
+    return {"fe_hz": float(np.mean(sig.omega_e) / (2 * np.pi)), "load_pct": load, "input_power_pct": p_in}
 
 
 @dataclass

@@ -161,13 +161,14 @@ class Estimate:
     unidentifiable: list = field(default_factory=list)  #: [{"parameters": [...], "reason": str}]
     problems: list = field(default_factory=list)  #: reasons to refuse the estimate (nonphysical)
     priors: dict = field(default_factory=dict)
+    conflicts: dict = field(default_factory=dict)  #: name -> warning: a nameplate value the records contradict (dropped)
 
     def to_json(self) -> dict:
         return {"values": self.values, "ci95": {k: list(v) if v else None for k, v in self.ci95.items()},
                 "rel_sd": self.rel_sd, "data_rel_sd": {k: (None if not np.isfinite(v) else v)
                                                         for k, v in self.data_rel_sd.items()},
                 "determined_by": self.determined_by, "unidentifiable": self.unidentifiable,
-                "problems": self.problems,
+                "problems": self.problems, "conflicts": self.conflicts,
                 "priors": {k: {"value": p.value, "rel_sd": p.rel_sd, "source": p.source} for k, p in self.priors.items()}}
 
 
@@ -254,8 +255,23 @@ def _collinear_reason(names: list[str], means: np.ndarray, encoder: bool = True)
 
 
 def estimate(obs: list[Observation], profile: DriveProfile, priors: dict[str, Prior] | None = None) -> Estimate:
-    """MAP estimate of (R_s, L_d, L_q, psi_m) from records' observations and nameplate priors."""
+    """MAP estimate of (R_s, L_d, L_q, psi_m) from records' observations and nameplate priors.
+
+    A nameplate value the records contradict (they pull the estimate more than ``CONFLICT_Z`` of
+    its tolerances away) is dropped and the estimate made again from the rest: a warning in
+    ``conflicts`` names the field and the size of the disagreement, and the records' value is the
+    one reported (a compromise between two values that disagree would be neither)."""
     priors = nameplate_priors(profile) if priors is None else priors
+    est = _estimate(obs, profile, priors)
+    if not est.conflicts:
+        return est
+    kept = {k: p for k, p in priors.items() if k not in est.conflicts}
+    again = _estimate(obs, profile, kept)
+    again.conflicts = est.conflicts
+    return again
+
+
+def _estimate(obs: list[Observation], profile: DriveProfile, priors: dict[str, Prior]) -> Estimate:
     dyn = _dynamics(obs)
     data_res = _data_residual(obs, dyn)
     means = np.array([o.means for o in obs])
@@ -307,9 +323,8 @@ def estimate(obs: list[Observation], profile: DriveProfile, priors: dict[str, Pr
         values[name] = float(np.exp(z[j]))
         ci[name] = (float(np.exp(z[j] - Z95 * post[j])), float(np.exp(z[j] + Z95 * post[j])))
         rel[name] = float(post[j])
-    problems = _problems(z, z0, sd, priors, means, profile)
-    return Estimate(values, ci, rel, {n: float(data_sd[j]) for j, n in enumerate(NAMES)}, by, groups, problems,
-                    dict(priors))
+    return Estimate(values, ci, rel, {n: float(data_sd[j]) for j, n in enumerate(NAMES)}, by, groups,
+                    _problems(z, means, profile), dict(priors), _conflicts(z, z0, sd, priors))
 
 
 def _jacobian(fun, z: np.ndarray, h: float = 1e-6) -> np.ndarray:
@@ -317,14 +332,23 @@ def _jacobian(fun, z: np.ndarray, h: float = 1e-6) -> np.ndarray:
     return np.column_stack([(fun(z + h * e) - r0) / h for e in np.eye(z.size)])
 
 
-def _problems(z, z0, sd, priors, means, profile) -> list[str]:
-    """Reasons the estimate is not physical: records against nameplate, values outside physical ranges."""
-    out = []
-    for j, name in enumerate(NAMES):  # prior-data conflict: the records pull it far outside its tolerance
+def _conflicts(z, z0, sd, priors) -> dict[str, str]:
+    """Nameplate values the records contradict: the records pull the estimate more than
+    ``CONFLICT_Z`` tolerances away; name -> the warning, naming the field and the disagreement."""
+    out = {}
+    for j, name in enumerate(NAMES):
         p = priors.get(name)
         if p is not None and abs(z[j] - z0[j]) > CONFLICT_Z * sd[j]:
-            out.append(f"{name}: the records give {np.exp(z[j]):.4g} {UNITS[name]}, {p.source} says "
-                       f"{p.value:.4g} {UNITS[name]} +- {100 * p.rel_sd:.0f} %")
+            out[name] = (f"{p.source.split(' ')[0]} disagrees with the records: it says {p.value:.4g} {UNITS[name]} "
+                         f"+- {100 * p.rel_sd:.0f} %, the records pull {name} to {np.exp(z[j]):.4g} {UNITS[name]} "
+                         f"even against it ({np.exp(z[j] - z0[j]) - 1:+.0%}, {abs(z[j] - z0[j]) / sd[j]:.1f} "
+                         f"tolerances); the records' value is used")
+    return out
+
+
+def _problems(z, means, profile) -> list[str]:
+    """Reasons the estimate is not physical: values outside physical ranges."""
+    out = []
     rs, ld, lq, psi = np.exp(z)  # the estimate itself, whether or not the records pin each value
     w = float(np.mean(np.abs(means[:, 4])))
     v = float(np.mean(np.hypot(means[:, 2], means[:, 3])))

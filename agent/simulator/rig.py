@@ -68,7 +68,7 @@ class OperatingPoint:
     """Values constant within one record (load, temperatures and the parameters they set)."""
 
     omega_m: float  #: rad/s, mechanical speed reference
-    T_L: float  #: N m, generator load torque at omega_m (motor side)
+    T_L: float  #: N m, generator load torque at omega_m (motor side): the motor's torque less the friction
     T_w: float  #: C, winding temperature
     T_m: float  #: C, magnet temperature
     R_s: float  #: ohm
@@ -77,9 +77,11 @@ class OperatingPoint:
 
 def operating_point(rig: RigParams, omega_m: float, T_rated: float, load_pct: float,
                     z_load: float, z_Tw: float, z_Tm: float) -> OperatingPoint:
-    """Load torque and temperatures from the load; ``z_*`` are standard-normal record draws."""
+    """Load torque and temperatures from the load, the torque the motor delivers at its shaft in
+    steady state (% of rated: what a drive shows as its load): the generator takes it less the
+    transmission's friction at ``omega_m``. ``z_*`` are standard-normal record draws."""
     x = load_pct / 100.0
-    T_L = x * T_rated * (1.0 + rig.sigma_load * z_load)
+    T_L = max(x * T_rated - (rig.B_1 + rig.B_2) * omega_m, 0.0) * (1.0 + rig.sigma_load * z_load)
     T_w = rig.T_amb + rig.dT_w_rated * x**2 + rig.sigma_T * z_Tw
     T_m = rig.T_amb + rig.dT_m_rated * x**2 + rig.sigma_T * z_Tm
     R_s = rig.R_s * (1.0 + rig.alpha_cu * (T_w - rig.T_amb))

@@ -97,7 +97,8 @@ def simulate(profile, condition: str = "healthy", load_pct: float = 80.0, second
     """Simulate one steady-state record of the rig at the profile's rated speed.
 
     ``profile``: DriveProfile or path; ``condition``: a :data:`CONDITIONS` name valid for the
-    profile's transmission; ``load_pct``: generator load, % of rated torque at the motor shaft;
+    profile's transmission; ``load_pct``: the torque the motor delivers at its shaft (the generator's load and the
+    transmission's friction), % of rated;
     ``effects``: ``{id: magnitude or None (default)}`` or a list of ids (:data:`EFFECTS`);
     ``encoder``: also return the true electrical angle (rad, wrapped to [0, 2 pi)) and speed (rad/s);
     ``severity`` scales the fault ripple and friction increase; ``load_step`` = (t_s, load_pct): the

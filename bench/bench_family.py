@@ -1,0 +1,322 @@
+"""The workbench over a randomised family of drives (bench.family): the customer's drive, not ours.
+
+    python -m bench.bench_family [--drives N] [--null N] [--seconds S] [--jobs J] [--short]
+
+Per drive (every attribute drawn, ``bench.family.draw_drive``): a baseline identified from four
+healthy records at 80 % load, as a user starts; then, for each library effect drawn from its whole
+family (``bench.family.draw_effect``), four records at 40/60/90/100 % load with it hidden, and
+``model explain`` on them; and four such records with nothing hidden (the null drive). The drive's
+own voltage path (its hold, computation delay and reporting) is in every record: it is the drive,
+not a hidden effect. Per effect:
+
+* top-1: the true effect first;
+* significant: of the drives whose records can reveal it (``bench.family.revealable``: physics,
+  not the workbench's power); where they cannot, whether explain said so;
+* gain: NRMSE of the best refit with a wrong effect over the true effect's (target >= 2);
+* the headline parameter's error (target <= 20 %; a delay against max(|d|, 1 sample));
+* a different effect claimed significant: counted and listed, never acceptable.
+
+Null drives: how many claim anything, with the 95 % upper bound (Clopper-Pearson) of the rate.
+Misses are grouped by the drive attribute that concentrates them. Results are appended per drive to
+bench/results/family_<S>s.jsonl and a rerun skips drives already there (nothing is lost when a run
+is cut short); the markdown table goes to stdout (docs/benchmarks.md, "Workbench on a family of
+drives") and the power plot (detected fraction against the hidden effect's size beyond the noise)
+to docs/img/family_power.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import os
+import sys
+import time
+import traceback
+from collections import Counter, defaultdict
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import scipy.stats
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = ROOT / "bench" / "results"
+BASE_LOAD, TEST_LOADS = 80.0, (40.0, 60.0, 90.0, 100.0)
+FIRST_SEED = 20_000
+#: the headline figure of each effect: the report keys compared with bench.family.truth's
+HEADLINE = {"current_offset": ("offset_A",), "current_gain_mismatch": ("gain_b", "gain_c"),
+            "resistance_drift": ("dR_dt_ohm_per_s",), "voltage_delay": ("delay_samples",),
+            "flux_harmonics": ("psi_5_Wb", "psi_7_Wb"), "inverter_deadtime": ("U_dt_V",),
+            "magnetic_saturation": ("lq_drop_at_rated",), "speed_ripple": ("omega_e_ripple_rad_s",)}
+#: categorical drive attributes misses are grouped by (numeric ones are split at their median)
+ATTRIBUTES = ("inverter", "voltage_hold", "computation_delay", "angle_compensation", "current_reference",
+              "mechanics", "excitation", "voltage_source", "command_logged_as", "current_sampling", "encoder",
+              "updates_per_carrier", "pole_pairs", "rate_hz", "saliency", "rated_power_w")
+GAIN_MIN, ERROR_MAX = 2.0, 0.20
+
+
+def parameter_error(effect: str, fitted: dict, true: dict) -> float | None:
+    """The headline error: the largest relative error over the headline keys whose true value is
+    at least a fifth of the largest (a mix of harmonics: each one that matters); a delay's error
+    relative to max(|d|, 1 sample). None where the effect reports no value (not identifiable)."""
+    keys = HEADLINE[effect]
+    if any(fitted.get(k) is None for k in keys):
+        return None
+    if effect == "voltage_delay":
+        d = true["delay_samples"]
+        return abs(fitted["delay_samples"] - d) / max(abs(d), 1.0)
+    big = max(abs(true.get(k, 0.0)) for k in keys)
+    errs = [abs(fitted[k] / true[k] - 1.0) for k in keys if abs(true.get(k, 0.0)) >= 0.2 * big and big > 0]
+    return max(errs) if errs else None
+
+
+def judge(doc: dict, effect: str, true: dict, revealable: tuple[bool, str]) -> dict:
+    """One drive's figures for one hidden effect from explain's document."""
+    rows = doc["candidates"]
+    names = [c["effect"] for c in rows]
+    sig = [c["effect"] for c in rows if c["significant"]]
+    out = {"effect": effect, "truth": true, "revealable": revealable[0], "why": revealable[1],
+           "answer": doc.get("note"), "significant_effects": sig, "wrong_claims": [e for e in sig if e != effect],
+           "nrmse_control": doc["nrmse_control"], "noise_floor": doc["noise_floor"], "seconds": doc["seconds"]}
+    if effect not in names:  # no ranking (the records carry no dynamics, or the control is unstable)
+        return {**out, "rank": None, "top": None, "significant": False, "gain": None, "error": None, "fitted": None}
+    row = rows[names.index(effect)]
+    wrong = [c["nrmse_after"] for c in rows if c["effect"] != effect and c["nrmse_after"] is not None]
+    fitted = {**(row.get("unpinned_params") or {}), **{k: v for k, v in row["params"].items() if v is not None}}
+    gain = (min(wrong) / max(row["nrmse_after"], 1e-12)) if wrong and row["nrmse_after"] is not None else None
+    return {**out, "rank": names.index(effect) + 1, "top": names[0], "significant": bool(row["significant"]),
+            "p_value": row["p_value"], "gain": gain, "fitted": fitted,
+            "error": parameter_error(effect, {k: v for k, v in row["params"].items()}, true),
+            "identifiable": bool(row["identifiable"]), "note": row.get("note", "")}
+
+
+def run_drive(args: tuple) -> dict:
+    """Everything for one drive: its baseline, the null set and (``with_effects``) one set per effect."""
+    seed, seconds, with_effects, effects = args
+    from agent.baseline import identify_baseline
+    from agent.workbench.explain import explain
+    from agent.workbench.fitting import prepare
+    from bench.family import draw_drive, draw_effect, profile, revealable, simulate, truth
+
+    t0 = time.perf_counter()
+    drive = draw_drive(seed)
+    prof = profile(drive)
+    out = {"seed": seed, "drive": {k: v for k, v in asdict(drive).items() if k in ATTRIBUTES},
+           "saliency": drive.lq_h / drive.ld_h, "rows": []}
+    out["drive"]["saliency"] = out["saliency"]
+    try:
+        base = identify_baseline([simulate(drive, {}, BASE_LOAD, seconds, seed=100 + j) for j in range(4)], prof,
+                                 window_s=min(0.5, seconds / 2))
+        sets = [("null", {})] + ([(e, {e: draw_effect(drive, e, seed)}) for e in effects] if with_effects else [])
+        for name, hidden in sets:
+            recs = [simulate(drive, hidden, load, seconds, seed=200 + j) for j, load in enumerate(TEST_LOADS)]
+            doc = explain(base, prepare(recs, prof))
+            if name == "null":
+                out["null"] = {"claims": [c["effect"] for c in doc["candidates"] if c["significant"]],
+                               "answer": doc.get("note"), "nrmse_control": doc["nrmse_control"],
+                               "noise_floor": doc["noise_floor"]}
+            else:
+                out["rows"].append(judge(doc, name, truth(drive, name, hidden[name], recs),
+                                         revealable(drive, name, TEST_LOADS)))
+    except Exception as err:  # a crash is a finding of its own: kept with its traceback, the run goes on
+        out["error"] = f"{type(err).__name__}: {err}"
+        out["traceback"] = traceback.format_exc()
+    out["seconds"] = time.perf_counter() - t0
+    return out
+
+
+def run(n_drives: int, n_null: int, seconds: float, jobs: int, effects, say=print, path: Path | None = None) -> list:
+    """Run (or resume) the family: drives FIRST_SEED.. with effects for the first ``n_drives``,
+    null sets for the first max(n_null, n_drives); results appended to ``path`` (JSON lines)."""
+    path = path or RESULTS / f"family_{seconds:g}s.jsonl"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    done = {}
+    if path.exists():
+        for line in path.read_text().splitlines():
+            r = json.loads(line)
+            done[r["seed"]] = r
+    total = max(n_null, n_drives)
+    todo = [(FIRST_SEED + j, seconds, j < n_drives, tuple(effects)) for j in range(total)
+            if FIRST_SEED + j not in done or (j < n_drives and not done[FIRST_SEED + j]["rows"]
+                                               and "error" not in done[FIRST_SEED + j])]
+    say(f"family: {total} drives ({n_drives} with {len(effects)} effects each), {len(done)} done before, "
+        f"{len(todo)} to run on {jobs} process(es)")
+    t0 = time.perf_counter()
+    with open(path, "a") as f, multiprocessing.get_context("spawn").Pool(jobs) as pool:
+        for k, r in enumerate(pool.imap_unordered(run_drive, todo), start=1):
+            f.write(json.dumps(r, default=float) + "\n")
+            f.flush()
+            done[r["seed"]] = r
+            left = (time.perf_counter() - t0) / k * (len(todo) - k)
+            say(f"drive {r['seed']}: {'ERROR ' + r['error'] if 'error' in r else summary(r)} "
+                f"({r['seconds']:.0f} s; {k}/{len(todo)}, about {left / 60:.0f} min left)")
+    return [done[FIRST_SEED + j] for j in range(total) if FIRST_SEED + j in done]
+
+
+def summary(r: dict) -> str:
+    null = r.get("null", {})
+    parts = [f"null claims {null.get('claims') or 'nothing'}"]
+    for row in r["rows"]:
+        ok = "ok" if row["rank"] == 1 and (row["significant"] or not row["revealable"]) else "MISS"
+        parts.append(f"{row['effect']} {ok} (rank {row['rank']}, sig {row['significant']}, "
+                     f"gain {row['gain'] or 0:.2g}, err {'n/a' if row['error'] is None else format(row['error'], '+.0%')})")
+    return "; ".join(parts)
+
+
+def upper95(k: int, n: int) -> float:
+    """Clopper-Pearson one-sided 95 % upper bound of a rate seen k times in n."""
+    return 1.0 if k >= n else float(scipy.stats.beta.ppf(0.95, k + 1, n - k))
+
+
+def _attr_value(drive: dict, key: str, medians: dict):
+    v = drive.get(key)
+    if key in medians:
+        return f"{'<' if v < medians[key] else '>='} {medians[key]:.3g}"
+    return v
+
+
+def misses_by_attribute(rows: list[tuple[dict, dict]]) -> list[str]:
+    """The attribute values that concentrate the misses: miss rate at least twice the effect's and
+    at least 2 misses, as "attribute=value: misses/drives"."""
+    if not rows:
+        return []
+    numeric = [k for k in ATTRIBUTES if isinstance(rows[0][0].get(k), float) and k not in ("saliency",)] + ["saliency"]
+    medians = {k: float(np.median([d[k] for d, _ in rows])) for k in numeric if all(k in d for d, _ in rows)}
+    rate = sum(m for _, m in rows) / len(rows)
+    out = []
+    for key in ATTRIBUTES:
+        groups = defaultdict(lambda: [0, 0])
+        for d, miss in rows:
+            g = groups[_attr_value(d, key, medians)]
+            g[0] += miss
+            g[1] += 1
+        for value, (m, n) in groups.items():
+            if m >= 2 and m / n >= 2 * rate and n < len(rows):
+                out.append((m / n, f"{key}={value}: {m}/{n}"))
+    return [s for _, s in sorted(out, reverse=True)]
+
+
+def is_miss(row: dict) -> bool:
+    if row["rank"] is None:
+        return row["revealable"]  # no ranking: a miss only where the records could reveal it
+    return (row["rank"] != 1 or (row["revealable"] and not row["significant"])
+            or (row["gain"] is not None and row["gain"] < GAIN_MIN)
+            or (row["error"] is not None and row["error"] > ERROR_MAX) or bool(row["wrong_claims"]))
+
+
+def table(results: list, effects) -> str:
+    lines = ["| effect | drives | top-1 | significant (revealable) | not revealable: said so | gain >= 2 (median) | "
+             "parameter within 20 % (median error) | other effect claimed | misses concentrate at |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    wrong_all = []
+    for eff in effects:
+        rows = [(r["drive"], row) for r in results for row in r["rows"] if row["effect"] == eff]
+        if not rows:
+            continue
+        n = len(rows)
+        top = sum(row["rank"] == 1 for _, row in rows)
+        rev = [row for _, row in rows if row["revealable"]]
+        sig = sum(row["significant"] for row in rev)
+        hidden = [row for _, row in rows if not row["revealable"]]
+        said = sum(bool(row["answer"]) or (row["rank"] is not None and not row["significant"]) for row in hidden)
+        gains = [row["gain"] for _, row in rows if row["gain"] is not None]
+        errs = [row["error"] for _, row in rows if row["error"] is not None]
+        wrong = [(d, row) for d, row in rows if row["wrong_claims"]]
+        wrong_all += [(eff, row["wrong_claims"]) for _, row in wrong]
+        where = misses_by_attribute([(d, is_miss(row)) for d, row in rows])
+        lines.append(f"| {eff} | {n} | {top / n:.0%} | {sig}/{len(rev)} = {sig / max(len(rev), 1):.0%} | "
+                     f"{said}/{len(hidden)} | {np.mean(np.array(gains) >= GAIN_MIN):.0%} ({np.median(gains):.3g}x) | "
+                     f"{np.mean(np.array(errs) <= ERROR_MAX):.0%} of {len(errs)} ({np.median(errs):.0%}) | "
+                     f"{len(wrong)} | {'; '.join(where[:3]) or '-'} |" if gains and errs else
+                     f"| {eff} | {n} | {top / n:.0%} | {sig}/{len(rev)} | {said}/{len(hidden)} | - | - | {len(wrong)} | "
+                     f"{'; '.join(where[:3]) or '-'} |")
+    nulls = [r["null"] for r in results if "null" in r]
+    claiming = [n["claims"] for n in nulls if n["claims"]]
+    quiet = sum(bool(n["answer"]) for n in nulls)
+    lines += ["", f"Null drives (nothing hidden): {len(claiming)} of {len(nulls)} claim an effect "
+              f"(95 % upper bound {upper95(len(claiming), len(nulls)):.1%} per drive); {quiet} answered that the "
+              "records carry no dynamics."]
+    if claiming:
+        lines.append("Claims on null drives: " + ", ".join(f"{k} x{v}" for k, v in
+                                                           Counter(e for c in claiming for e in c).most_common()))
+    lines.append("A different effect claimed significant: " + (", ".join(f"{w} for hidden {e}" for e, ws in wrong_all
+                                                                          for w in ws) or "never") + ".")
+    errors = [r for r in results if "error" in r]
+    if errors:
+        lines.append(f"Drives that ended in an error: {len(errors)} ({'; '.join(r['error'] for r in errors[:3])})")
+    return "\n".join(lines)
+
+
+def power_plot(results: list, effects, path: Path) -> Path:
+    """Detected (significant) fraction against the hidden effect's size: the control's held-out
+    NRMSE over its noise floor, binned; one line per effect."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    edges = np.array([0, 1.5, 3, 6, 12, 25, 50, np.inf])
+    centres = np.array([1, 2, 4, 8, 16, 32, 64])
+    for eff in effects:
+        pts = [(row["nrmse_control"] / max(row["noise_floor"] or 1e-12, 1e-12), row["significant"])
+               for r in results for row in r["rows"] if row["effect"] == eff and row["revealable"]
+               and row["nrmse_control"] is not None and row["noise_floor"]]
+        if not pts:
+            continue
+        x, y = np.array(pts, dtype=float).T
+        idx = np.digitize(x, edges) - 1
+        frac = [(centres[b], y[idx == b].mean(), (idx == b).sum()) for b in range(len(centres)) if (idx == b).any()]
+        ax.plot([f[0] for f in frac], [f[1] for f in frac], "o-", label=eff)
+    ax.set_xscale("log")
+    ax.set_xlabel("hidden effect's size: the control's held-out NRMSE / noise floor")
+    ax.set_ylabel("detected (significant) fraction")
+    ax.set_ylim(-0.02, 1.02)
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=7, loc="lower right")
+    ax.set_title("explain's power over the drive family")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def main(argv=None) -> int:
+    from agent.effects import EFFECTS
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--drives", type=int, default=60, help="drives with each hidden effect (default 60)")
+    p.add_argument("--null", type=int, default=300, help="null drives, the effect drives among them (default 300)")
+    p.add_argument("--seconds", type=float, default=1.0, help="record length, s (default 1.0)")
+    p.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="worker processes (default: the cores)")
+    p.add_argument("--effects", default="", help="comma-separated effect ids (default: the library's)")
+    p.add_argument("--short", action="store_true", help="`make test`'s form: 2 drives per effect, 0.6 s records")
+    p.add_argument("--plot", default=str(ROOT / "docs" / "img" / "family_power.png"), help="power plot file")
+    a = p.parse_args(argv)
+    effects = [e for e in a.effects.split(",") if e] or list(EFFECTS)
+    unknown = [e for e in effects if e not in EFFECTS]
+    if unknown:
+        p.error(f"--effects: unknown effect {unknown[0]!r} (known: {', '.join(EFFECTS)})")
+    if a.drives < 0 or a.null < 0 or a.jobs < 1:
+        p.error("--drives, --null must be >= 0 and --jobs >= 1")
+    if not 0.4 <= a.seconds <= 10:
+        p.error(f"--seconds: {a.seconds:g} is outside 0.4..10 s (the hold-out needs half of each record)")
+    n_drives, n_null, seconds = (2, 2, 0.6) if a.short else (a.drives, a.null, a.seconds)
+    say = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
+    path = RESULTS / (f"family_short.jsonl" if a.short else f"family_{seconds:g}s.jsonl")
+    if a.short and path.exists():
+        path.unlink()
+    t0 = time.perf_counter()
+    results = run(n_drives, n_null, seconds, a.jobs, effects, say, path)
+    print(table(results, effects))
+    print(f"\n{len(results)} drives, {time.perf_counter() - t0:.0f} s wall on {a.jobs} process(es), "
+          f"{sum(r['seconds'] for r in results):.0f} s of drive work; results {path}")
+    if not a.short:
+        print(f"power plot: {power_plot(results, effects, Path(a.plot))}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
