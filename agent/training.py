@@ -1,0 +1,158 @@
+"""Training data is checked before it becomes a baseline (``identify``, ``learn``, ``model add-effect``).
+
+A baseline says what healthy looks like at one operating point; records that are not that make
+every later decision quietly wrong (thresholds and cluster widened until a fault reads normal).
+:func:`check_training` refuses, with one line naming the files:
+
+* **spread**: operating points that spread beyond the operating-point tolerance the agent uses to
+  schedule a baseline (:class:`agent.library.Schedule`: +-2 Hz fe, +-5 %-points load): the records
+  belong to several baselines;
+* **fault evidence**: a record that reads *warning* (a sideband pair above TH3 in every window, or
+  a cluster point beyond the :data:`GUARD_CONFIDENCE` region)
+
+  - against the baseline being replaced, when the record is at that baseline's operating point;
+  - against the thresholds and cluster learned from the *other* records (leave one out, with the
+    new model), when there are at least :data:`LOO_MIN_RECORDS` records.
+
+  The cluster reads at :data:`GUARD_CONFIDENCE` rather than the diagnosis's 95 %: a healthy record
+  lies outside a 95 % region one time in twenty, and a check of every record of a set must pass
+  healthy sets almost always (docs/workbench.md, "Training data is checked", has the measured rate).
+
+``accept_fault_evidence`` learns from records with fault evidence anyway; the caller records it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from agent.baseline import Baseline, Cluster, Thresholds, TrainingRecord, centre_spread, residual_spectra
+from agent.errors import InputError
+from agent.identify import cluster_point, operating_point
+from agent.library import Schedule
+from agent.model import Signals
+from agent.spectrum import envelope
+
+#: a sideband pair reads as a fault when both lines stand above centre + GUARD_SIGMA spread in every
+#: window (the diagnosis's warning, TH3, is centre + 3 spread)
+GUARD_SIGMA = 5.0
+#: confidence of the cluster region that the checks read a record against (the diagnosis uses 95 %)
+GUARD_CONFIDENCE = 0.999
+#: the leave-one-out check needs this many records (the cluster of the others needs 4 points)
+LOO_MIN_RECORDS = 5
+#: the others' spectrum statistics are median / MAD: faulty records among the others must not hide one
+#: another (the cluster's stay mean / covariance: the robust fit's trimmed covariance refused healthy
+#: records when two faulty ones were among the others)
+LOO_ROBUST = True
+ACCEPT_FLAG = "--accept-fault-evidence"
+
+
+def check_training(records: list[TrainingRecord], schedule: Schedule = Schedule(), *,
+                   baseline: Baseline | None = None, replaced: Baseline | None = None, replaced_name: str = "",
+                   accept_fault_evidence: bool = False) -> list[str]:
+    """Refuse (``InputError``, one line naming the files) training ``records`` whose operating
+    points spread beyond ``schedule``'s tolerance, or with fault evidence (module docstring):
+    read by ``replaced`` (the baseline they replace, named ``replaced_name``) and, when
+    ``baseline`` (the one learned from them) is given, by leave-one-out. With
+    ``accept_fault_evidence`` the fault evidence is returned (one text per record) instead."""
+    check_spread(records, schedule)
+    findings = []
+    for rec in records:
+        why = [f"{replaced_name or 'the baseline it replaces'} reads {reason}"
+               for reason in _replaced_reading(replaced, rec, schedule)]
+        why += [f"the other records' baseline reads {reason}" for reason in _left_out_reading(baseline, records, rec)]
+        if why:
+            findings.append(f"{rec.source} ({'; '.join(why)})")
+    if findings and not accept_fault_evidence:
+        raise InputError(f"fault evidence in the training records: {', '.join(findings)}: learn from healthy "
+                         f"records (or {ACCEPT_FLAG} to learn from them anyway, recorded)")
+    return findings
+
+
+def check_spread(records: list[TrainingRecord], schedule: Schedule = Schedule()) -> None:
+    """Refuse records whose loads or electrical frequencies spread beyond ``schedule``'s tolerance,
+    naming them grouped by operating point (a new group where a record lies beyond the tolerance
+    of its group's first)."""
+    fe = np.array([r.operating_point["fe_hz"] for r in records])
+    load = np.array([r.operating_point["load_pct"] for r in records])
+    load_wide, fe_wide = np.ptp(load) > schedule.load_tol_pct, np.ptp(fe) > schedule.fe_tol_hz
+    if not (load_wide or fe_wide):
+        return
+    what = ([f"load {load.min():.1f}-{load.max():.1f} % (tolerance {schedule.load_tol_pct:g} %-points)"]
+            * bool(load_wide) + [f"fe {fe.min():.2f}-{fe.max():.2f} Hz (tolerance {schedule.fe_tol_hz:g} Hz)"]
+            * bool(fe_wide))
+    groups: list[list[int]] = []
+    for j in np.lexsort((load, fe) if fe_wide else (fe, load)):
+        first = groups[-1][0] if groups else None
+        if first is None or abs(load[j] - load[first]) > schedule.load_tol_pct or abs(fe[j] - fe[first]) > schedule.fe_tol_hz:
+            groups.append([])
+        groups[-1].append(int(j))
+
+    def span(x, unit, digits):
+        lo, hi = f"{x.min():.{digits}f}", f"{x.max():.{digits}f}"
+        return f"{lo} {unit}" if lo == hi else f"{lo}-{hi} {unit}"
+
+    each = "; ".join(f"load {span(load[g], '%', 1)}" + (f" fe {span(fe[g], 'Hz', 2)}" if fe_wide else "") + ": "
+                     + ", ".join(records[j].source for j in g) for g in groups)
+    raise InputError(f"the training records spread over {' and '.join(what)}, beyond one operating point: "
+                     f"{each}; split them by operating point (one baseline each)")
+
+
+def at_operating_point(baseline: Baseline, op: dict, schedule: Schedule = Schedule()) -> bool:
+    """Whether ``op`` lies within ``schedule``'s tolerance of ``baseline``'s operating point."""
+    bop = baseline.operating_point
+    return (abs(op["fe_hz"] - bop["fe_hz"]) <= schedule.fe_tol_hz
+            and abs(op["load_pct"] - bop["load_pct"]) <= schedule.load_tol_pct)
+
+
+def training_record(baseline: Baseline, sig: Signals, source: str) -> TrainingRecord:
+    """A record as ``baseline`` sees it: operating point, residual spectra, cluster point."""
+    m = baseline.model
+    _, amp = residual_spectra(m, sig, baseline.thresholds.window_s, baseline.thresholds.freqs_hz[-1])
+    point = cluster_point(sig, baseline.profile, m.form, m.extra_q, baseline.settings.get("prefilter_hz"))
+    return TrainingRecord(source, operating_point(sig, baseline.profile), sig, amp, point)
+
+
+def fault_reading(baseline: Baseline, rec: TrainingRecord) -> list[str]:
+    """What reads as a fault in ``rec`` (its spectra and cluster point under ``baseline``'s model)
+    at the guard's levels: a sideband pair above centre + :data:`GUARD_SIGMA` spread in every
+    window, a cluster point beyond the :data:`GUARD_CONFIDENCE` region. The diagnosis's own rule
+    (:func:`agent.decision.decide`) with those two levels."""
+    from agent.decision import decide
+
+    th, cl = baseline.thresholds, baseline.cluster
+    guard = dataclasses.replace(  # TH3 = centre + 3 (GUARD_SIGMA / 3) spread
+        baseline, thresholds=dataclasses.replace(th, spread=th.spread * GUARD_SIGMA / 3.0),
+        cluster=dataclasses.replace(cl, limit=cl.limit_at(GUARD_CONFIDENCE), confidence=GUARD_CONFIDENCE))
+    d = decide(guard, th.freqs_hz, rec.spectra, rec.point, rec.operating_point, rec.source)
+    out = []
+    if d.spectrum_state == "warning":
+        lines = sorted({(p["family"], p["k"]) for p in d.peaks if p["level"] == "warning"})
+        out.append(f"sidebands above {GUARD_SIGMA:g} sigma at " + ", ".join(f"{f} k={k}" for f, k in lines))
+    if d.cluster_state == "warning":
+        out.append(f"its cluster point outside the {GUARD_CONFIDENCE:.1%} region (distance^2 "
+                   f"{d.cluster['distance2']:.1f} > {d.cluster['limit']:.1f})")
+    return out
+
+
+def _replaced_reading(replaced: Baseline | None, rec: TrainingRecord, schedule: Schedule) -> list[str]:
+    """``rec`` read by the baseline it replaces, when that baseline covers its operating point."""
+    sig = rec.signals() if callable(rec.signals) else rec.signals
+    if (replaced is None or sig is None or abs(replaced.model.ts - sig.ts) > 1e-9 * sig.ts
+            or not at_operating_point(replaced, rec.operating_point, schedule)):
+        return []
+    return fault_reading(replaced, training_record(replaced, sig, rec.source))
+
+
+def _left_out_reading(baseline: Baseline | None, records: list[TrainingRecord], rec: TrainingRecord) -> list[str]:
+    """``rec`` against thresholds and cluster learned from the other records with ``baseline``'s model."""
+    if baseline is None or len(records) < LOO_MIN_RECORDS or rec.spectra is None:
+        return []
+    th, cl = baseline.thresholds, baseline.cluster
+    others = [r for r in records if r is not rec]
+    centre, spread = centre_spread(envelope(np.concatenate([r.spectra for r in others]), th.search_bins), LOO_ROBUST)
+    rest = dataclasses.replace(
+        baseline, thresholds=Thresholds(th.freqs_hz, centre, spread, th.window_s, LOO_ROBUST, th.search_bins),
+        cluster=Cluster.fit(np.array([r.point for r in others]), cl.confidence, cl.region))
+    return fault_reading(rest, rec)
