@@ -16,7 +16,7 @@ every later decision quietly wrong (thresholds and cluster widened until a fault
 
   The cluster reads at :data:`GUARD_CONFIDENCE` rather than the diagnosis's 95 %: a healthy record
   lies outside a 95 % region one time in twenty, and a check of every record of a set must pass
-  healthy sets almost always (docs/workbench.md, "Training data is checked", has the measured rate).
+  healthy sets almost always (docs/method.md, "Training data is checked", has the measured rate).
 
 ``accept_fault_evidence`` learns from records with fault evidence anyway; the caller records it.
 """
@@ -38,7 +38,7 @@ from agent.spectrum import envelope
 #: window (the diagnosis's warning, TH3, is centre + 3 spread)
 GUARD_SIGMA = 5.0
 #: confidence of the cluster region that the checks read a record against (the diagnosis uses 95 %)
-GUARD_CONFIDENCE = 0.999
+GUARD_CONFIDENCE = 0.9999
 #: the leave-one-out check needs this many records (the cluster of the others needs 4 points)
 LOO_MIN_RECORDS = 5
 #: the others' spectrum statistics are median / MAD: faulty records among the others must not hide one
@@ -107,9 +107,11 @@ def at_operating_point(baseline: Baseline, op: dict, schedule: Schedule = Schedu
 
 
 def training_record(baseline: Baseline, sig: Signals, source: str) -> TrainingRecord:
-    """A record as ``baseline`` sees it: operating point, residual spectra, cluster point."""
-    m = baseline.model
-    _, amp = residual_spectra(m, sig, baseline.thresholds.window_s, baseline.thresholds.freqs_hz[-1])
+    """A record as ``baseline`` sees it: operating point, residual spectra (None when the record is
+    shorter than one of its windows), cluster point."""
+    m, th = baseline.model, baseline.thresholds
+    amp = (residual_spectra(m, sig, th.window_s, th.freqs_hz[-1])[1]
+           if sig.n >= int(round(th.window_s / sig.ts)) else None)
     point = cluster_point(sig, baseline.profile, m.form, m.extra_q, baseline.settings.get("prefilter_hz"))
     return TrainingRecord(source, operating_point(sig, baseline.profile), sig, amp, point)
 
@@ -131,18 +133,20 @@ def fault_reading(baseline: Baseline, rec: TrainingRecord) -> list[str]:
         lines = sorted({(p["family"], p["k"]) for p in d.peaks if p["level"] == "warning"})
         out.append(f"sidebands above {GUARD_SIGMA:g} sigma at " + ", ".join(f"{f} k={k}" for f, k in lines))
     if d.cluster_state == "warning":
-        out.append(f"its cluster point outside the {GUARD_CONFIDENCE:.1%} region (distance^2 "
+        out.append(f"its cluster point outside the {100 * GUARD_CONFIDENCE:g} % region (distance^2 "
                    f"{d.cluster['distance2']:.1f} > {d.cluster['limit']:.1f})")
     return out
 
 
 def _replaced_reading(replaced: Baseline | None, rec: TrainingRecord, schedule: Schedule) -> list[str]:
     """``rec`` read by the baseline it replaces, when that baseline covers its operating point."""
-    sig = rec.signals() if callable(rec.signals) else rec.signals
-    if (replaced is None or sig is None or abs(replaced.model.ts - sig.ts) > 1e-9 * sig.ts
-            or not at_operating_point(replaced, rec.operating_point, schedule)):
+    if replaced is None or rec.signals is None or not at_operating_point(replaced, rec.operating_point, schedule):
         return []
-    return fault_reading(replaced, training_record(replaced, sig, rec.source))
+    sig = rec.signals() if callable(rec.signals) else rec.signals
+    if abs(replaced.model.ts - sig.ts) > 1e-9 * sig.ts:  # a model of another sample rate cannot read it
+        return []
+    seen = training_record(replaced, sig, rec.source)
+    return [] if seen.spectra is None else fault_reading(replaced, seen)
 
 
 def _left_out_reading(baseline: Baseline | None, records: list[TrainingRecord], rec: TrainingRecord) -> list[str]:
@@ -150,7 +154,9 @@ def _left_out_reading(baseline: Baseline | None, records: list[TrainingRecord], 
     if baseline is None or len(records) < LOO_MIN_RECORDS or rec.spectra is None:
         return []
     th, cl = baseline.thresholds, baseline.cluster
-    others = [r for r in records if r is not rec]
+    others = [r for r in records if r is not rec and r.spectra is not None]
+    if len(others) < LOO_MIN_RECORDS - 1:
+        return []
     centre, spread = centre_spread(envelope(np.concatenate([r.spectra for r in others]), th.search_bins), LOO_ROBUST)
     rest = dataclasses.replace(
         baseline, thresholds=Thresholds(th.freqs_hz, centre, spread, th.window_s, LOO_ROBUST, th.search_bins),
