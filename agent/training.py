@@ -85,7 +85,8 @@ def check_spread(records: list[TrainingRecord], schedule: Schedule = Schedule())
     groups: list[list[int]] = []
     for j in np.lexsort((load, fe) if fe_wide else (fe, load)):
         first = groups[-1][0] if groups else None
-        if first is None or abs(load[j] - load[first]) > schedule.load_tol_pct or abs(fe[j] - fe[first]) > schedule.fe_tol_hz:
+        if (first is None or abs(load[j] - load[first]) > schedule.load_tol_pct
+                or abs(fe[j] - fe[first]) > schedule.fe_tol_hz):
             groups.append([])
         groups[-1].append(int(j))
 

@@ -56,6 +56,8 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
     from agent.library import ModelLibrary, Schedule
     from agent.pipeline import DriveMonitor
     from agent.runtime.service import build_source, pipeline_config
+    from dataclasses import replace as replace_field
+
     from agent.training import check_training, training_record
 
     drive = _drive(cfg, drive_name)
@@ -71,7 +73,8 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
                                    accept_fault_evidence=accept_fault_evidence)
 
         def vet(baseline):  # then each file against the others, with the learned model, before the write
-            seen = [training_record(baseline, r.signals(), r.source) for r in training]
+            seen = [replace_field(training_record(baseline, r.signals(), r.source), signals=r.signals)
+                    for r in training]
             findings.extend(f for f in check_training(seen, library.schedule, baseline=baseline,
                                                       accept_fault_evidence=accept_fault_evidence)
                             if f not in findings)
