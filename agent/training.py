@@ -11,6 +11,8 @@ every later decision quietly wrong (thresholds and cluster widened until a fault
   a cluster point beyond the :data:`GUARD_CONFIDENCE` region)
 
   - against the baseline being replaced, when the record is at that baseline's operating point;
+    and the set as a whole when at least half of its records (and 2) read a spectrum warning at the
+    diagnosis's own level (TH3) against it: one healthy record in many does, most of a set do not;
   - against the thresholds and cluster learned from the *other* records (leave one out, with the
     new model), when there are at least :data:`LOO_MIN_RECORDS` records.
 
@@ -24,6 +26,7 @@ every later decision quietly wrong (thresholds and cluster widened until a fault
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 
@@ -39,6 +42,9 @@ from agent.spectrum import envelope
 GUARD_SIGMA = 5.0
 #: confidence of the cluster region that the checks read a record against (the diagnosis uses 95 %)
 GUARD_CONFIDENCE = 0.9999
+#: the set as a whole: when at least this share of the records (and 2) read a spectrum warning at the
+#: diagnosis's own level (TH3, SET_SIGMA) against the baseline they replace, they are refused
+SET_SHARE, SET_SIGMA = 0.5, 3.0
 #: the leave-one-out check needs this many records (the cluster of the others needs 4 points)
 LOO_MIN_RECORDS = 5
 #: the others' spectrum statistics are median / MAD: faulty records among the others must not hide one
@@ -57,13 +63,20 @@ def check_training(records: list[TrainingRecord], schedule: Schedule = Schedule(
     ``baseline`` (the one learned from them) is given, by leave-one-out. With
     ``accept_fault_evidence`` the fault evidence is returned (one text per record) instead."""
     check_spread(records, schedule)
-    findings = []
-    for rec in records:
-        why = [f"{replaced_name or 'the baseline it replaces'} reads {reason}"
-               for reason in _replaced_reading(replaced, rec, schedule)]
-        why += [f"the other records' baseline reads {reason}" for reason in _left_out_reading(baseline, records, rec)]
-        if why:
-            findings.append(f"{rec.source} ({'; '.join(why)})")
+    name = replaced_name or "the baseline it replaces"
+    seen = [_seen_by(replaced, rec, schedule) for rec in records]
+    why: dict[str, list[str]] = {rec.source: [] for rec in records}
+    for rec, by_replaced in zip(records, seen):
+        why[rec.source] += [f"{name} reads {r}" for r in fault_reading(replaced, by_replaced)] if by_replaced else []
+        why[rec.source] += [f"the other records' baseline reads {r}" for r in _left_out_reading(baseline, records, rec)]
+    # the set as a whole: most records at the diagnosis's own warning level against the replaced baseline
+    warned = {r.source: fault_reading(replaced, s, SET_SIGMA, None) for r, s in zip(records, seen) if s is not None}
+    warned = {k: v for k, v in warned.items() if v}
+    if len(warned) >= max(2, math.ceil(SET_SHARE * len(records))):
+        for source, reasons in warned.items():
+            why[source] += [f"{name} reads {r} (as it reads {len(warned)} of {len(records)} records)"
+                            for r in reasons if not why[source]]
+    findings = [f"{source} ({'; '.join(w)})" for source, w in why.items() if w]
     if findings and not accept_fault_evidence:
         raise InputError(f"fault evidence in the training records: {', '.join(findings)}: learn from healthy "
                          f"records (or {ACCEPT_FLAG} to learn from them anyway, recorded)")
@@ -117,37 +130,39 @@ def training_record(baseline: Baseline, sig: Signals, source: str) -> TrainingRe
     return TrainingRecord(source, operating_point(sig, baseline.profile), sig, amp, point)
 
 
-def fault_reading(baseline: Baseline, rec: TrainingRecord) -> list[str]:
-    """What reads as a fault in ``rec`` (its spectra and cluster point under ``baseline``'s model)
-    at the guard's levels: a sideband pair above centre + :data:`GUARD_SIGMA` spread in every
-    window, a cluster point beyond the :data:`GUARD_CONFIDENCE` region. The diagnosis's own rule
-    (:func:`agent.decision.decide`) with those two levels."""
+def fault_reading(baseline: Baseline, rec: TrainingRecord, sigma: float = GUARD_SIGMA,
+                  confidence: float | None = GUARD_CONFIDENCE) -> list[str]:
+    """What reads as a fault in ``rec`` (its spectra and cluster point under ``baseline``'s model):
+    a sideband pair above centre + ``sigma`` spread in every window, a cluster point beyond the
+    ``confidence`` region (None: the cluster is not read). The diagnosis's own rule
+    (:func:`agent.decision.decide`) at those levels."""
     from agent.decision import decide
 
     th, cl = baseline.thresholds, baseline.cluster
-    guard = dataclasses.replace(  # TH3 = centre + 3 (GUARD_SIGMA / 3) spread
-        baseline, thresholds=dataclasses.replace(th, spread=th.spread * GUARD_SIGMA / 3.0),
-        cluster=dataclasses.replace(cl, limit=cl.limit_at(GUARD_CONFIDENCE), confidence=GUARD_CONFIDENCE))
+    guard = dataclasses.replace(  # TH3 = centre + 3 (sigma / 3) spread
+        baseline, thresholds=dataclasses.replace(th, spread=th.spread * sigma / 3.0),
+        cluster=dataclasses.replace(cl, limit=cl.limit_at(confidence) if confidence else np.inf))
     d = decide(guard, th.freqs_hz, rec.spectra, rec.point, rec.operating_point, rec.source)
     out = []
     if d.spectrum_state == "warning":
         lines = sorted({(p["family"], p["k"]) for p in d.peaks if p["level"] == "warning"})
-        out.append(f"sidebands above {GUARD_SIGMA:g} sigma at " + ", ".join(f"{f} k={k}" for f, k in lines))
+        out.append(f"sidebands above {sigma:g} sigma at " + ", ".join(f"{f} k={k}" for f, k in lines))
     if d.cluster_state == "warning":
-        out.append(f"its cluster point outside the {100 * GUARD_CONFIDENCE:g} % region (distance^2 "
+        out.append(f"its cluster point outside the {100 * confidence:g} % region (distance^2 "
                    f"{d.cluster['distance2']:.1f} > {d.cluster['limit']:.1f})")
     return out
 
 
-def _replaced_reading(replaced: Baseline | None, rec: TrainingRecord, schedule: Schedule) -> list[str]:
-    """``rec`` read by the baseline it replaces, when that baseline covers its operating point."""
+def _seen_by(replaced: Baseline | None, rec: TrainingRecord, schedule: Schedule) -> TrainingRecord | None:
+    """``rec`` as the baseline it replaces sees it, when that baseline covers its operating point
+    and can read it (same sample rate, at least one window)."""
     if replaced is None or rec.signals is None or not at_operating_point(replaced, rec.operating_point, schedule):
-        return []
+        return None
     sig = rec.signals() if callable(rec.signals) else rec.signals
     if abs(replaced.model.ts - sig.ts) > 1e-9 * sig.ts:  # a model of another sample rate cannot read it
-        return []
+        return None
     seen = training_record(replaced, sig, rec.source)
-    return [] if seen.spectra is None else fault_reading(replaced, seen)
+    return None if seen.spectra is None else dataclasses.replace(seen, signals=None)
 
 
 def _left_out_reading(baseline: Baseline | None, records: list[TrainingRecord], rec: TrainingRecord) -> list[str]:
