@@ -7,8 +7,9 @@ every later decision quietly wrong (thresholds and cluster widened until a fault
 * **spread**: operating points that spread beyond the operating-point tolerance the agent uses to
   schedule a baseline (:class:`agent.library.Schedule`: +-2 Hz fe, +-5 %-points load): the records
   belong to several baselines;
-* **fault evidence**: a record that reads *warning* (a sideband pair above TH3 in every window, or
-  a cluster point beyond the :data:`GUARD_CONFIDENCE` region)
+* **fault evidence**: a record that reads as faulty (the diagnosis's rule at stricter levels: a
+  sideband pair above centre + :data:`GUARD_SIGMA` spread in every window, where TH3 is + 3, or a
+  cluster point beyond the :data:`GUARD_CONFIDENCE` region)
 
   - against the baseline being replaced, when the record is at that baseline's operating point;
     and the set as a whole when at least half of its records (and 2) read a spectrum warning at the
@@ -16,9 +17,8 @@ every later decision quietly wrong (thresholds and cluster widened until a fault
   - against the thresholds and cluster learned from the *other* records (leave one out, with the
     new model), when there are at least :data:`LOO_MIN_RECORDS` records.
 
-  The cluster reads at :data:`GUARD_CONFIDENCE` rather than the diagnosis's 95 %: a healthy record
-  lies outside a 95 % region one time in twenty, and a check of every record of a set must pass
-  healthy sets almost always (docs/method.md, "Training data is checked", has the measured rate).
+  The levels are stricter than the diagnosis's (a healthy record lies outside a 95 % region one
+  time in twenty) because every record of a set is read and healthy sets must pass almost always (docs/method.md, "Training data is checked", has the measured rate).
 
 ``accept_fault_evidence`` learns from records with fault evidence anyway; the caller records it.
 """
