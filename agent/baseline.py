@@ -13,6 +13,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -111,6 +112,10 @@ class Cluster:
     confidence: float = 0.95
     region: str = "prediction"
 
+    def limit_at(self, confidence: float) -> float:
+        """Squared Mahalanobis distance at the edge of this cluster's region at another ``confidence``."""
+        return region_limit(self.region, confidence, *self.points.shape)
+
     def distance2(self, point) -> float:
         """Squared Mahalanobis distance of ``point`` from the healthy centre."""
         d = np.asarray(point, dtype=float) - self.centre
@@ -130,13 +135,17 @@ class Cluster:
             if len(inliers) > p + 1:
                 centre, cov = inliers.mean(axis=0), np.cov(inliers, rowvar=False)
         cov = cov + np.eye(p) * 1e-12 * np.trace(cov)
-        if region == "chi2":
-            limit = chi2_quantile(confidence, p)
-        elif region == "prediction":
-            limit = p * (m - 1) * (m + 1) / (m * (m - p)) * f_quantile(confidence, p, m - p)
-        else:
-            raise ValueError(f"unknown cluster region {region!r} (prediction, chi2)")
-        return cls(points, centre, cov, float(limit), confidence, region)
+        return cls(points, centre, cov, region_limit(region, confidence, m, p), confidence, region)
+
+
+def region_limit(region: str, confidence: float, m: int, p: int) -> float:
+    """Squared Mahalanobis distance at the edge of the healthy region of ``m`` points in ``p``
+    dimensions: the Hotelling prediction ellipse (``"prediction"``) or the chi-square one."""
+    if region == "chi2":
+        return float(chi2_quantile(confidence, p))
+    if region == "prediction":
+        return float(p * (m - 1) * (m + 1) / (m * (m - p)) * f_quantile(confidence, p, m - p))
+    raise ValueError(f"unknown cluster region {region!r} (prediction, chi2)")
 
 
 def chi2_quantile(q: float, dof: int) -> float:
@@ -156,6 +165,18 @@ def f_quantile(q: float, dfn: int, dfd: int) -> float:
 
 
 @dataclass
+class TrainingRecord:
+    """One record as a baseline saw it while learning (for :mod:`agent.training`'s checks)."""
+
+    source: str
+    operating_point: dict  #: fe_hz (Hz), load_pct (% of rated power)
+    #: dq signals, or a function that computes them again (to read the record with another baseline)
+    signals: Signals | Callable[[], Signals] | None = field(default=None, repr=False)
+    spectra: np.ndarray | None = field(default=None, repr=False)  #: residual amplitude spectra (windows, bins), A
+    point: np.ndarray | None = None  #: cluster point (Ts/Lq, B_GT)
+
+
+@dataclass
 class Baseline:
     """Everything learned from healthy records at one operating point."""
 
@@ -169,6 +190,8 @@ class Baseline:
     history: list[dict] = field(default_factory=list)
     evidence: EvidenceStats | None = None  #: healthy statistics of the alarm evidence (agent.evidence)
     physical: dict | None = None  #: physical parameters with intervals (agent.physical.Estimate.to_json)
+    training: list[TrainingRecord] = field(default_factory=list, repr=False)  #: what it was learned from
+    #: (records given to identify_baseline; this run only, not saved in the model file)
 
 
 class BaselineBuilder:
@@ -196,6 +219,7 @@ class BaselineBuilder:
         self.stretch_cluster: list[np.ndarray] = []
         self.stretch_load: list[float] = []
         self.stretch_s = 0.0
+        self.training: list[TrainingRecord] = []  #: per record of pass 2 (add_spectra)
         self.consecutive = False  #: stretches follow each other in one stream (streaming learning)
 
     def add_fit(self, sig: Signals, source: str = "", encoder: bool = False) -> FitResult:
@@ -237,7 +261,7 @@ class BaselineBuilder:
             self._features = make_features(self.profile, fe, (SEARCH_BINS + 0.5) / window_s, F_MAX_HZ)
         return self._features
 
-    def add_spectra(self, sig: Signals) -> None:
+    def add_spectra(self, sig: Signals, source: str = "") -> None:
         """Pass 2: residual spectra of every window of one record (Alg. 3 lines 3-9); the record is
         also one stretch of the alarm evidence."""
         freqs, amp = residual_spectra(self.model(), sig, self.settings["window_s"])
@@ -246,6 +270,7 @@ class BaselineBuilder:
         point = cluster_point(sig, self.profile, m.form, m.extra_q, self.settings["prefilter_hz"])
         y = feature_values(freqs, amp, self.profile, op["fe_hz"], self.features(), SEARCH_BINS)
         self.add_stretch(y, point, op["load_pct"], sig.n * sig.ts)
+        self.training.append(TrainingRecord(source, op, sig, amp, point))
 
     def add_stretch(self, window_y: np.ndarray, point, load_pct: float, seconds: float) -> None:
         """One stretch of healthy operation for the alarm evidence: its windows' feature values
@@ -275,7 +300,7 @@ class BaselineBuilder:
             operating_point=op, records=list(self.sources),
             settings={**st, "records": len(self.fits), "windows": len(self.spectra),
                       "implausible_records": sum(f.reason != "ok" for f in self.fits)},
-            evidence=self.evidence(), physical=self.physical().to_json())
+            evidence=self.evidence(), physical=self.physical().to_json(), training=list(self.training))
 
     def evidence(self) -> EvidenceStats | None:
         """Healthy statistics of the alarm evidence, or None with fewer than 4 stretches."""
@@ -309,7 +334,7 @@ def identify_baseline(records: list[Record], profile: DriveProfile, *, refine: b
     for j, (rec, sig) in enumerate(zip(records, sigs)):
         if progress:
             progress(m + j, 2 * m, f"residual spectrum {rec.source}")
-        builder.add_spectra(sig)
+        builder.add_spectra(sig, rec.source)
     base = builder.build()
     base.settings["refine"] = refine
     return base

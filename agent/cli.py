@@ -110,23 +110,39 @@ def cmd_frequencies(args) -> None:
     _emit(args, doc, "\n".join(lines))
 
 
-def _has_versions(path: str) -> bool:
-    """Whether ``path`` is a model file that ``model add-effect`` wrote (its history has versions)."""
+def _existing_model(path: str):
+    """The baseline in the model file ``path``, or None when there is none this version reads."""
     from agent.modelfile import load_baseline
 
     try:
-        return bool(load_baseline(path).history)
+        return load_baseline(path)
     except InputError:  # no model there, or not one this version reads
-        return False
+        return None
+
+
+def accept_fault_evidence_flag(parser) -> None:
+    """``--accept-fault-evidence`` (identify, learn, model add-effect): :mod:`agent.training`."""
+    parser.add_argument("--accept-fault-evidence", action="store_true",
+                        help="learn from training records that read as faulty (against the baseline they replace, "
+                             "or against the other records) anyway; the model file or journal records it")
+
+
+def warn_fault_evidence(command: str, findings: list[str]) -> None:
+    """The warning line when training records with fault evidence were learned from (on stderr)."""
+    if findings:
+        print(f"pmsm-agent {command}: warning: learned from records with fault evidence "
+              f"(--accept-fault-evidence): {', '.join(findings)}", file=sys.stderr)
 
 
 def cmd_identify(args) -> None:
     from agent.baseline import identify_baseline
     from agent.modelfile import save_baseline
     from agent.profile import load_profile
+    from agent.training import check_training
 
     profile = load_profile(args.profile)
-    if not args.replace and _has_versions(args.out):
+    replaced = _existing_model(args.out)
+    if not args.replace and replaced is not None and replaced.history:
         raise InputError(f"--out {args.out}: a model with workbench versions (model history); it is kept "
                          f"(choose a new file, or --replace)")
     if len(args.data) < 4:
@@ -137,6 +153,10 @@ def cmd_identify(args) -> None:
     base = identify_baseline(recs, profile, form=args.form, robust=args.robust, window_s=args.window,
                              confidence=args.confidence, region=args.region, spectrum_rule=args.spectrum_rule,
                              prefilter_hz=args.prefilter, progress=_progress)
+    findings = check_training(base.training, baseline=base, replaced=replaced, replaced_name=f"--out {args.out}",
+                              accept_fault_evidence=args.accept_fault_evidence)
+    if findings:
+        base.model.meta["accepted_fault_evidence"] = findings
     phys = base.physical
     if phys["problems"] and not args.force:
         raise InputError(f"nonphysical parameters, model not written: {'; '.join(phys['problems'])} "
@@ -144,13 +164,14 @@ def cmd_identify(args) -> None:
     if phys["problems"]:
         base.model.meta["forced"] = phys["problems"]
     save_baseline(base, args.out)
+    warn_fault_evidence("identify", findings)
     m = base.model
     names_d, names_q = (tuple(t.name for t in ts) for ts in m.terms)
     params = {"d": dict(zip(names_d, m.theta_d.tolist())), "q": dict(zip(names_q, m.theta_q.tolist())),
               "physical": phys["values"], "ci95": phys["ci95"], "determined_by": phys["determined_by"],
               "unidentifiable": phys["unidentifiable"], "ts_over_lq": float(m.theta_q[2]),
               "b_gt": float(base.cluster.centre[1]), "constrained": base.model.meta.get("constrained", False),
-              "forced": phys["problems"]}
+              "forced": phys["problems"], "accepted_fault_evidence": findings}
     doc = {"model": str(args.out), "records": len(recs), "params": params,
            "operating_point": {k: base.operating_point[k] for k in ("fe_hz", "load_pct")},
            "cluster": {"centre": base.cluster.centre, "limit": base.cluster.limit, "region": base.cluster.region},
@@ -291,7 +312,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a fault needs both sidebands fe -+ k f above threshold (pair, default) or one line (line)")
     s.add_argument("--force", action="store_true",
                    help="write the model even when its physical parameters are refused (the model is marked)")
-    s.add_argument("data", nargs="+", help="healthy records")
+    accept_fault_evidence_flag(s)
+    s.add_argument("data", nargs="+", help="healthy records at one operating point")
     s.set_defaults(func=cmd_identify)
 
     s = sub.add_parser("diagnose", parents=[common], help="normal / caution / warning for each record")
@@ -325,8 +347,7 @@ def _main(argv: list[str] | None) -> int:
     try:
         args.func(args)
     except InputError as err:
-        print(f"pmsm-agent {args.command}: error: {err}", file=sys.stderr)
-        return 2
+        return _error(args, str(err), 2)
     except KeyboardInterrupt:
         return 130
     except BrokenPipeError:
@@ -334,13 +355,23 @@ def _main(argv: list[str] | None) -> int:
     except ModuleNotFoundError as err:
         if err.name not in WORKBENCH_MODULES:
             raise
-        print(f"pmsm-agent {args.command}: error: this needs the workbench install ({err.name} is missing): "
-              f"pip install 'pmsm-agent[workbench]' (in the checkout: make setup)", file=sys.stderr)
-        return 2
-    except Exception:  # a bug: say so, with the traceback, and exit 1
+        return _error(args, f"this needs the workbench install ({err.name} is missing): pip install "
+                            f"'pmsm-agent[workbench]' (in the checkout: make setup)", 2)
+    except Exception as err:  # a bug: say so, with the traceback, and exit 1
         log.exception("internal error")
-        return 1
+        return _error(args, f"internal error: {type(err).__name__}: {err}", 1, quiet=True)
     return 0
+
+
+def _error(args, message: str, code: int, quiet: bool = False) -> int:
+    """Exit status ``code`` for an error: one line on stderr (unless ``quiet``: already logged) and,
+    with ``--json``, one object ``{"error": message, "exit": code}`` on stdout."""
+    if not quiet:
+        print(f"pmsm-agent {args.command}: error: {message}", file=sys.stderr)
+    if getattr(args, "json", False):
+        json.dump({"error": message, "exit": code}, sys.stdout)
+        sys.stdout.write("\n")
+    return code
 
 
 if __name__ == "__main__":

@@ -115,6 +115,7 @@ class DriveMonitor:
         self._clock = 0  # samples since the monitor started (all streams): the hold's time base
         self._builder: BaselineBuilder | None = None
         self._learn_name = ""
+        self._learn_vet = None
         self.alarms = AlarmLogic(config.alarm)
         self.reset_stream()
 
@@ -364,11 +365,13 @@ class DriveMonitor:
         return new
 
     # -- learning -------------------------------------------------------------------------------
-    def start_learning(self, name: str | None = None, replace: bool = False, **settings) -> None:
+    def start_learning(self, name: str | None = None, replace: bool = False, vet=None, **settings) -> None:
         """Learn a baseline named ``name`` (default ``<drive>_<fe>hz_<load>pct``, from the learned
         operating point) from the stream; ``replace`` lets it replace the baseline of that name when
-        that baseline covers the operating point (never implicit)."""
+        that baseline covers the operating point (never implicit). ``vet(baseline)``, when given, is
+        called with the learned baseline before it is written (it raises to keep it out)."""
         self._builder = BaselineBuilder(self.profile, window_s=self.config.window_s, **settings)
+        self._learn_vet = vet
         self._builder.consecutive = True
         self._learn_name = name
         self._learn_replace = replace
@@ -476,6 +479,8 @@ class DriveMonitor:
         if covering is not None and not (self._learn_replace and covering == self._learn_name):
             return self._refuse(f"baseline {covering} already covers fe {bop['fe_hz']:.2f} Hz, load "
                                 f"{bop['load_pct']:.1f} % (replace it explicitly)", op)
+        if self._learn_vet is not None:
+            self._learn_vet(baseline)
         path = self.library.add(self._learn_name, baseline)
         self._builder = None
         self.on_event("learned", {"name": self._learn_name, "path": str(path), "operating_point": bop,

@@ -135,16 +135,15 @@ def save_record(record: Record, path: str | Path) -> Path:
 
 
 def validate_record(record: Record, profile=None, min_samples: int = 0) -> Record:
-    """Check at least ``min_samples`` (and 2) samples, finite values, uniform increasing time and
-    the sample rate against ``profile.sampling.rate_hz``.
+    """Check at least 2 samples, finite values, uniform increasing time, the sample rate against
+    ``profile.sampling.rate_hz`` and then at least ``min_samples`` samples (a record at another
+    rate is refused for its rate, whatever its length).
 
     Raises :class:`InputError` naming ``record.source``; returns ``record`` unchanged.
     """
     src, n = record.source, record.n
     if n == 0:
         raise InputError("no samples: the file has no data rows", source=src)
-    if n < min_samples:
-        raise InputError(f"too short for the window: {n} samples, need {min_samples}", source=src)
     if n < 2:
         raise InputError(f"need at least 2 samples to define a sample rate, got {n}", source=src)
     for name, x in record.channels().items():
@@ -158,6 +157,8 @@ def validate_record(record: Record, profile=None, min_samples: int = 0) -> Recor
         if abs(rate - want) > RATE_TOLERANCE * want:
             raise InputError(f"sample rate {rate:.9g} Hz disagrees with the profile's "
                              f"sampling.rate_hz = {want:.9g} Hz", source=src)
+    if n < min_samples:  # after the rate: a record at another rate is that, not a short one
+        raise InputError(f"too short for the window: {n} samples, need {min_samples}", source=src)
     return record
 
 

@@ -75,7 +75,7 @@ def test_learn_refuses_with_one_line_and_leaves_the_library_alone(tmp_path, caps
         expect = "--drive 'drive9'"
     else:
         argv = ["--drive", "drive1", *records(tmp_path, 5, 80.0), *records(tmp_path, 10, 70.0, seed=850)]
-        expect = "load spread"
+        expect = "healthy_80_800.npz"  # each file named with its operating point's group
     rc, out, err = run(["learn", "--config", str(cfg), *argv], capsys)
     assert rc == 2 and out == "" and "Traceback" not in err
     assert len(err.strip().splitlines()) == 1 and expect in err, err

@@ -9,7 +9,12 @@ reason and the library is unchanged:
 * not enough healthy evidence (``pipeline.learn_stretches`` stretches over ``pipeline.learn_min_s``);
 * speed or load spread beyond the operating-point tolerance (``pipeline.schedule_*_tol``);
 * too many unusable spans (NaN, saturation) or a drive that is not running;
-* a valid baseline already covers the operating point (``--replace`` with its ``--name`` replaces it).
+* a valid baseline already covers the operating point (``--replace`` with its ``--name`` replaces it);
+* from files, the training-data checks of :func:`agent.training.check_training` (one line naming the
+  files): their operating points spread beyond the tolerance, or a file reads as faulty against the
+  baseline it replaces (before learning) or against the others (after learning, before the write).
+  ``--accept-fault-evidence`` learns anyway and writes a ``learning`` event saying so into the
+  journal of the agent's ``state_dir``.
 """
 
 from __future__ import annotations
@@ -31,18 +36,49 @@ def _drive(cfg, name: str):
     raise InputError(f"--drive {name!r}: no such drive in {cfg.source} (drives: {', '.join(d.name for d in cfg.drives)})")
 
 
+def _file_records(files: list[str], profile) -> list:
+    """Each file as a training record: its operating point, and its signals computed again when
+    needed (a file set is never held in memory at once)."""
+    from agent.baseline import TrainingRecord
+    from agent.identify import operating_point, record_signals
+    from agent.records import load_record
+
+    def signals(path):
+        return lambda: record_signals(load_record(path, profile), profile)
+
+    return [TrainingRecord(path, operating_point(signals(path)(), profile), signals(path)) for path in files]
+
+
 def learn(cfg, drive_name: str, files: list[str], name: str | None = None, replace: bool = False,
-          progress=None, max_seconds: float | None = None) -> dict:
+          progress=None, max_seconds: float | None = None, accept_fault_evidence: bool = False) -> dict:
     """Learn a baseline for ``drive_name``; returns what was learned, raises InputError with the
     reason when learning refuses or the data runs out (``progress(pct, text)`` as it goes)."""
     from agent.library import ModelLibrary, Schedule
     from agent.pipeline import DriveMonitor
     from agent.runtime.service import build_source, pipeline_config
+    from dataclasses import replace as replace_field
+
+    from agent.training import check_training, training_record
 
     drive = _drive(cfg, drive_name)
     p = cfg.pipeline
     library = ModelLibrary(cfg.library.path, Schedule(p.schedule_fe_tol_hz, p.schedule_load_tol_pct,
                                                       p.schedule_hysteresis))
+    findings: list[str] = []
+    vet = None
+    if files:  # the training-data checks (agent.training): spread and the replaced baseline's reading first
+        training = _file_records(files, drive.drive_profile)
+        replaced = library.baselines.get(name) if replace and name else None
+        findings += check_training(training, library.schedule, replaced=replaced, replaced_name=f"baseline {name}",
+                                   accept_fault_evidence=accept_fault_evidence)
+
+        def vet(baseline):  # then each file against the others, with the learned model, before the write
+            seen = [replace_field(training_record(baseline, r.signals(), r.source), signals=r.signals)
+                    for r in training]
+            findings.extend(f for f in check_training(seen, library.schedule, baseline=baseline,
+                                                      accept_fault_evidence=accept_fault_evidence)
+                            if f not in findings)
+            baseline.model.meta.update({"accepted_fault_evidence": findings} if findings else {})
     events: list[tuple[str, dict]] = []
 
     def on_event(kind, detail):
@@ -52,7 +88,7 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
 
     pcfg = pipeline_config(cfg)
     monitor = DriveMonitor(drive.name, drive.drive_profile, library, pcfg, on_event=on_event)
-    monitor.start_learning(name, replace=replace)
+    monitor.start_learning(name, replace=replace, vet=vet)
     if files:
         from agent.records import load_record
         from protocols.base import Block
@@ -97,10 +133,20 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
         raise InputError(f"not enough healthy data for drive {drive.name}: learning reached {pct:.0f} % "
                          f"(needs {p.learn_windows} spans, then {p.learn_stretches} stretches of {p.stretch_s:g} s "
                          f"over at least {p.learn_min_s:g} s of steady operation); the library is unchanged")
-    return {"drive": drive.name, **learned[-1]}
+    doc = {"drive": drive.name, **learned[-1], "accepted_fault_evidence": findings}
+    if findings:
+        from agent.runtime.journal import Journal
+
+        with Journal.from_config(cfg) as journal:
+            journal.record("learning", drive.name, detail={
+                "event": "fault_evidence_accepted", "name": doc["name"], "path": doc["path"],
+                "msg": f"learned {doc['name']} from records with fault evidence (--accept-fault-evidence)",
+                "records": findings})
+    return doc
 
 
 def cmd_learn(args) -> None:
+    from agent.cli import warn_fault_evidence
     from agent.runtime.config import check_config
 
     cfg = check_config(args.config)
@@ -109,7 +155,8 @@ def cmd_learn(args) -> None:
         log.info("learning %s: %.0f %%%s", args.drive, pct, f" ({phase})" if phase else "")
 
     doc = learn(cfg, args.drive, args.data, name=args.name, replace=args.replace, progress=progress,
-                max_seconds=args.max_seconds)
+                max_seconds=args.max_seconds, accept_fault_evidence=args.accept_fault_evidence)
+    warn_fault_evidence("learn", doc["accepted_fault_evidence"])
     if args.json:
         json.dump(doc, sys.stdout)
         sys.stdout.write("\n")
@@ -121,6 +168,8 @@ def cmd_learn(args) -> None:
 
 def add_commands(sub, common) -> None:
     """Add ``learn`` to the ``pmsm-agent`` subparsers."""
+    from agent.cli import accept_fault_evidence_flag
+
     s = sub.add_parser("learn", parents=[common], help="commission a baseline for one drive (from files or the live source)")
     s.add_argument("--config", required=True, metavar="FILE", help="agent config TOML (the drive, its library)")
     s.add_argument("--drive", required=True, help="the drive's name in the config")
@@ -129,5 +178,6 @@ def add_commands(sub, common) -> None:
                    help="replace the baseline of this --name if it covers the operating point (never implicit)")
     s.add_argument("--max-seconds", type=float, default=None,
                    help="live source only: give up after this many seconds of wall time")
+    accept_fault_evidence_flag(s)
     s.add_argument("data", nargs="*", metavar="REC", help="recorded files (CSV/NPZ/TDMS); none: the live source")
     s.set_defaults(func=cmd_learn)

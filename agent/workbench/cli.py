@@ -132,7 +132,7 @@ def cmd_explain(args) -> None:
 
 
 def cmd_add_effect(args) -> None:
-    from agent.baseline import identify_baseline
+    from agent.cli import warn_fault_evidence
     from agent.effects import get, params_text
     from agent.modelfile import save_baseline
     from agent.workbench.explain import add_effects
@@ -143,31 +143,73 @@ def cmd_add_effect(args) -> None:
     base, recs, preps = _load(args, args.model)
     ref, fig = add_effects(base, preps, effects)
     _warn(fig)
-    keep = ("form", "robust", "window_s", "prefilter_hz", "confidence", "region", "spectrum_rule")
-    settings = {k: v for k, v in base.settings.items() if k in keep}
-    short = [r.source for r in recs if r.duration_s < settings.get("window_s", 2.0)]
-    if len(recs) < 4 or short:
-        raise InputError(f"add-effect relearns the thresholds and the cluster: it needs at least 4 healthy records "
-                         f"of at least {settings.get('window_s', 2.0):g} s (got {len(recs)}"
-                         + (f", too short: {', '.join(short)}" if short else "") + ")")
-    new = identify_baseline(recs, base.profile, model=ref.model, **settings)
+    new, thresholds, findings = _relearn_thresholds(base, ref.model, recs, args.model, args.accept_fault_evidence)
     entry = {"version": len(base.history) + 1, "parent": str(args.model), "added": effects,
              "effects": list(ref.model.meta["effects"]), "nrmse_before": fig["nrmse_before"],
              "nrmse_control": fig["nrmse_control"], "nrmse_after": fig["nrmse_after"], "params": fig["params"],
-             "nrmse_basis": NRMSE_BASIS,
+             "nrmse_basis": NRMSE_BASIS, "thresholds": thresholds,
+             **({"accepted_fault_evidence": findings} if findings else {}),
              "records": [r.source for r in recs], "timestamp": datetime.now(timezone.utc).isoformat(timespec="seconds")}
     new.history = list(base.history) + [entry]
     save_baseline(new, args.out, replace=False)
+    warn_fault_evidence("model add-effect", findings)
     doc = {"model": str(args.out), "effect": effects[0] if len(effects) == 1 else effects,
            "nrmse_before": fig["nrmse_before"], "nrmse_after": fig["nrmse_after"],
            "nrmse_control": fig["nrmse_control"], "params": fig["params"], "base": fig["base"],
            "version": entry["version"], "parent": str(args.model), "warnings": fig["warnings"],
+           "thresholds": thresholds, "accepted_fault_evidence": findings,
            "th3_change": float((new.thresholds.th3.mean() / base.thresholds.th3.mean()) - 1)
            if new.thresholds.th3.size == base.thresholds.th3.size else None}
     _emit(args, doc, (f"wrote {args.out} (version {entry['version']}, effects {', '.join(entry['effects'])})\n"
                       f"held-out free-run NRMSE beyond the noise floor: before {_pct(fig['nrmse_before'])}, control "
                       f"{_pct(fig['nrmse_control'])}, with {'+'.join(effects)} {_pct(fig['nrmse_after'])}\n"
-                      + "\n".join(f"  {e}: {params_text(p)}" for e, p in fig["params"].items())))
+                      + "\n".join(f"  {e}: {params_text(p)}" for e, p in fig["params"].items())
+                      + f"\nthresholds and cluster: {thresholds['action']} ({thresholds['reason']})"
+                      + (f"; {thresholds['note']}" if "note" in thresholds else "")))
+
+
+def _relearn_thresholds(parent, model, recs, parent_path: str, accept_fault_evidence: bool):
+    """The new version's baseline with ``model``: thresholds, cluster and alarm statistics relearned
+    on ``recs`` when they are healthy records at the parent's operating point (the checks of
+    :func:`agent.training.check_training`, the parent reading them as the baseline they replace),
+    else the parent's kept. Returns (baseline, {"action": "relearned"/"kept", "reason"}, the fault
+    evidence accepted). Fault evidence at the operating point is refused (InputError) unless
+    ``accept_fault_evidence``."""
+    from dataclasses import replace
+
+    from agent.baseline import identify_baseline
+    from agent.training import at_operating_point, check_spread, check_training
+
+    keep = ("form", "robust", "window_s", "prefilter_hz", "confidence", "region", "spectrum_rule")
+    settings = {k: v for k, v in parent.settings.items() if k in keep}
+    window_s = settings.get("window_s", 2.0)
+    short = [r.source for r in recs if r.duration_s < window_s]
+
+    def kept(reason):
+        op = parent.operating_point
+        note = (f"they were learned with the parent's model, whose residual differs from this one's: relearn them "
+                f"on at least 4 healthy records at load {op['load_pct']:.1f} %, fe {op['fe_hz']:.2f} Hz before "
+                f"monitoring with this version")
+        return replace(parent, model=model, training=[]), {"action": "kept", "reason": reason, "note": note}, []
+
+    if len(recs) < 4 or short:
+        return kept(f"relearning needs at least 4 healthy records of at least {window_s:g} s at the model's "
+                    f"operating point, got {len(recs)}" + (f", too short: {', '.join(short)}" if short else ""))
+    new = identify_baseline(recs, parent.profile, model=model, **settings)
+    try:
+        check_spread(new.training)
+    except InputError as err:
+        return kept(str(err))
+    far = [f"{r.source} load {r.operating_point['load_pct']:.1f} % fe {r.operating_point['fe_hz']:.2f} Hz"
+           for r in new.training if not at_operating_point(parent, r.operating_point)]
+    if far:
+        op = parent.operating_point
+        return kept(f"records away from the model's operating point (load {op['load_pct']:.1f} %, fe "
+                    f"{op['fe_hz']:.2f} Hz): {', '.join(far)}")
+    findings = check_training(new.training, baseline=new, replaced=parent, replaced_name=f"--model {parent_path}",
+                              accept_fault_evidence=accept_fault_evidence)
+    return new, {"action": "relearned", "reason": f"{len(recs)} healthy records at the model's operating point"
+                 + (" (fault evidence accepted)" if findings else "")}, findings
 
 
 def cmd_history(args) -> None:
@@ -211,7 +253,11 @@ def add_commands(sub, common) -> None:
     s.add_argument("--model", required=True)
     s.add_argument("--effect", required=True, action="append", metavar="ID", help="effect id (repeatable)")
     s.add_argument("--out", required=True, help="new model file")
-    s.add_argument("data", nargs="+", help="healthy records (at least 4, for the thresholds and cluster)")
+    from agent.cli import accept_fault_evidence_flag
+
+    accept_fault_evidence_flag(s)
+    s.add_argument("data", nargs="+", help="records; the thresholds and cluster are relearned on them when they are "
+                   "at least 4 healthy records at the model's operating point, else the model's are kept")
     s.set_defaults(func=cmd_add_effect)
     s = msub.add_parser("history", parents=[common], help="versions of a model file")
     s.add_argument("model", nargs="?", help="model file")
