@@ -175,7 +175,10 @@ def cmd_identify(args) -> None:
     doc = {"model": str(args.out), "records": len(recs), "params": params,
            "operating_point": {k: base.operating_point[k] for k in ("fe_hz", "load_pct")},
            "cluster": {"centre": base.cluster.centre, "limit": base.cluster.limit, "region": base.cluster.region},
-           "seconds": round(time.perf_counter() - t0, 3), "alarm": _alarm_evidence(base)}
+           "seconds": round(time.perf_counter() - t0, 3), "alarm": _alarm_evidence(base),
+           "warnings": list(phys.get("conflicts", {}).values())}
+    for w in doc["warnings"]:  # a nameplate value the records contradict: dropped, the records' value kept
+        log.warning("%s", w)
     for g in phys["unidentifiable"]:
         if g["from_nameplate"]:
             log.info("%s taken from the nameplate: %s", ", ".join(g["parameters"]), g["reason"])

@@ -258,14 +258,17 @@ def estimate(obs: list[Observation], profile: DriveProfile, priors: dict[str, Pr
     """MAP estimate of (R_s, L_d, L_q, psi_m) from records' observations and nameplate priors.
 
     A nameplate value the records contradict (they pull the estimate more than ``CONFLICT_Z`` of
-    its tolerances away) is dropped and the estimate made again from the rest: a warning in
+    its tolerances away) is left out (its spread widened to the vague prior's) and the estimate made
+    again: a warning in
     ``conflicts`` names the field and the size of the disagreement, and the records' value is the
     one reported (a compromise between two values that disagree would be neither)."""
     priors = nameplate_priors(profile) if priors is None else priors
     est = _estimate(obs, profile, priors)
     if not est.conflicts:
         return est
-    kept = {k: p for k, p in priors.items() if k not in est.conflicts}
+    # the contradicted value widened to the vague prior's spread: the records set it, the rest stays
+    kept = {k: Prior(p.value, VAGUE_SD, f"{p.source} (contradicted by the records: not used)")
+            if k in est.conflicts else p for k, p in priors.items()}
     again = _estimate(obs, profile, kept)
     again.conflicts = est.conflicts
     return again
