@@ -24,7 +24,7 @@ from agent.cli import main
 from agent.historian import store
 from agent.historian.buffer import Buffer
 from agent.historian.config import load_historian_config, parse_historian_config
-from agent.historian.ingest import Last
+from agent.historian.ingest import Last, identity, sample_rows
 from agent.historian.service import WAITING_FOR_DATABASE, Historian
 from agent.errors import InputError
 from protocols.base import QUALITY_CODES, STATE_CODES, DriveStatus
@@ -311,6 +311,41 @@ def test_a_batch_sent_twice_is_written_once(pg, tmp_path):
     buffer.close()
 
 
+def test_buffered_rows_survive_a_restart_and_a_refused_row_is_set_aside(pg, router, tmp_path):
+    """Rows buffered while PostgreSQL is down are written by the next run (the drive's last state
+    is kept with them: a repeated sample adds nothing); a row PostgreSQL refuses for its data is
+    set aside without holding up the rows behind it."""
+    dsn = pg.create_database()
+    cfg = load_historian_config(write_config(tmp_path, dsn, router, batch_size=50))
+    samples = list(schedule(time.time() - 900))
+    pg.stop()
+    first = Historian(cfg)
+    first.start()
+    for i, kw in samples[:30]:
+        first.ingest("pmsm/gw1/d1/state", {"drive": "d1", "agent": "gw1", **kw})
+    wait_for(lambda: first.database["state"] == WAITING_FOR_DATABASE, what="the writer to wait")
+    assert first.stop() == 8  # samples 0-29: events at 0 (state, quality), 5, 20; trends at 0, 5, 15, 20
+    pg.start()
+    second = Historian(cfg)
+    poison = {"site": "", "gateway": "gw1", "drive": "d1", "t": samples[29][1]["t"], "state": 7, "quality": 0,
+              "evidence": {}}
+    second.buffer.append([("trend", poison)], ("", "gw1", "d1"), second._last[("", "gw1", "d1")])
+    for i, kw in samples[29:]:  # sample 29 again: already recorded, no row
+        second.ingest("pmsm/gw1/d1/state", {"drive": "d1", "agent": "gw1", **kw})
+    second.start()
+    try:
+        wait_for(lambda: second.buffer.count() == 0, 20, "the buffer to drain")
+        events, trends = db_rows(dsn)
+        assert (events[("", "gw1", "d1")], trends[("", "gw1", "d1")]) == expected(samples[0][1]["t"])
+        assert second.counters["rows_set_aside"] == 1
+        import sqlite3
+        with sqlite3.connect(cfg.buffer_path) as db:
+            (error,) = db.execute("SELECT error FROM set_aside").fetchone()
+        assert "evidence_trend" in error or "check constraint" in error
+    finally:
+        second.stop()
+
+
 def test_database_down_at_start(pg, router, tmp_path):
     """The CLI historian waits for PostgreSQL (stderr and status file say so), keeps buffering and
     writes everything once the server starts; SIGTERM stops it with status 0."""
@@ -426,6 +461,23 @@ def test_history_queries_from_the_cli(pg, router, tmp_path, capsys):
     rc, out = run("history", "--alarms", "--dsn", f"host=127.0.0.1 port={free_port()} user=postgres "
                   "connect_timeout=2")
     assert rc == 2 and "cannot reach the database (--dsn)" in out.err
+
+
+def test_samples_are_made_fit_for_postgresql():
+    """Non-finite numbers and NUL characters (which jsonb and text refuse) are cleaned at ingest;
+    a payload that is not a drive state is refused with the reason."""
+    doc = {"drive": "d1", "state": "warning", "quality": "good", "t": 100.0, "model": "m\x00",
+           "reason": {"path": "gross", "feature": "a\x00b", "z": float("nan"), "lines": [float("inf"), 1.5]},
+           "evidence": {"chain": float("nan"), "cluster": 0.5}}
+    ident = identity("pmsm/d1/state", {**doc, "agent": "gw7"}, "pmsm")
+    assert ident == ("", "gw7", "d1")
+    rows, last = sample_rows(ident, doc, None, trend_period_s=10.0, received_t=200.0)
+    event, trend = rows[0][1], rows[-1][1]
+    assert event["reason"] == {"path": "gross", "feature": "ab", "z": None, "lines": [None, 1.5]}
+    assert event["model"] == "m" and trend["evidence"] == {"chain": None, "cluster": 0.5} and last.state == 2
+    for bad, why in (([1], "not a JSON object"), ({"drive": "d1", "state": "alarm", "quality": "good"}, "'state'")):
+        with pytest.raises(ValueError, match=why):
+            sample_rows(identity("pmsm/d1/state", bad, "pmsm"), bad, None, trend_period_s=10.0, received_t=1.0)
 
 
 def _iso(t):

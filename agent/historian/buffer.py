@@ -3,7 +3,8 @@
 SQLite in the state directory, WAL with ``synchronous=FULL`` (as the agent's journal): when
 :meth:`Buffer.append` returns, the rows survive a killed process and a power cut. Rows leave
 only through :meth:`Buffer.delete_through`, which the writer calls after PostgreSQL committed
-them. Ids grow and are never reused (AUTOINCREMENT), and each buffer file has its own random
+them, or through :meth:`Buffer.set_aside` when PostgreSQL refuses a row itself (kept, with the
+error, in the ``set_aside`` table). Ids grow and are never reused (AUTOINCREMENT), and each buffer file has its own random
 ``buffer_id``: PostgreSQL keeps the highest id written per buffer, so a batch committed but not
 yet deleted here (the process died in between) is skipped when it is sent again.
 
@@ -17,6 +18,7 @@ import json
 import os
 import sqlite3
 import threading
+import time
 import uuid
 from pathlib import Path
 
@@ -28,6 +30,13 @@ CREATE TABLE IF NOT EXISTS pending (
     id    INTEGER PRIMARY KEY AUTOINCREMENT,
     tbl   TEXT NOT NULL,
     row   TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS set_aside (
+    id     INTEGER PRIMARY KEY,
+    tbl    TEXT NOT NULL,
+    row    TEXT NOT NULL,
+    error  TEXT NOT NULL,
+    t      REAL NOT NULL
 );
 CREATE TABLE IF NOT EXISTS drive_last (
     site TEXT NOT NULL, gateway TEXT NOT NULL, drive TEXT NOT NULL,
@@ -82,6 +91,16 @@ class Buffer:
         """Forget every row with ``id <= last_id`` (PostgreSQL has committed them)."""
         with self._lock:
             self._db.execute("DELETE FROM pending WHERE id <= ?", (int(last_id),))
+
+    def set_aside(self, row_id: int, error: str) -> None:
+        """Move a row that PostgreSQL refuses (bad data, not an outage) out of the queue into
+        ``set_aside``, with the error, so that it no longer blocks the rows behind it."""
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            self._db.execute("INSERT INTO set_aside(id, tbl, row, error, t) SELECT id, tbl, row, ?, ? "
+                             "FROM pending WHERE id = ?", (error, time.time(), int(row_id)))
+            self._db.execute("DELETE FROM pending WHERE id = ?", (int(row_id),))
+            self._db.execute("COMMIT")
 
     @property
     def is_open(self) -> bool:

@@ -70,6 +70,22 @@ def _number(x) -> float | None:
     return float(x) if isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) else None
 
 
+def _text(x) -> str:
+    """A string PostgreSQL's text takes (no NUL characters)."""
+    return str(x or "").replace("\x00", "")
+
+
+def json_safe(x):
+    """``x`` with non-finite numbers as ``None`` and NUL characters dropped (jsonb refuses both)."""
+    if isinstance(x, dict):
+        return {_text(k): json_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [json_safe(v) for v in x]
+    if isinstance(x, float):
+        return _number(x)
+    return _text(x) if isinstance(x, str) else x
+
+
 def sample_rows(ident: Identity, doc: dict, last: Last | None, *, trend_period_s: float,
                 received_t: float) -> tuple[list[tuple[str, dict]], Last]:
     """``([(table, row), ...], new Last)`` for one sample of the drive ``ident`` (see :func:`identity`);
@@ -77,16 +93,16 @@ def sample_rows(ident: Identity, doc: dict, last: Last | None, *, trend_period_s
     state, quality = _code(doc, "state", STATE_CODES), _code(doc, "quality", QUALITY_CODES)
     t = _number(doc.get("t"))
     t = t if t and t > 0 else received_t
-    reason = doc.get("reason") or None
+    reason = json_safe(doc.get("reason")) or None
     rkey = reason_key(reason) if state > 0 else None
     site, gateway, drive = ident
     base = {"site": site, "gateway": gateway, "drive": drive, "t": t, "state": state, "quality": quality,
             "fe_hz": _number(doc.get("fe_hz")), "load_pct": _number(doc.get("load_pct"))}
     event = {**base, "prev_state": last.state if last else None, "prev_quality": last.quality if last else None,
-             "reason": reason, "model": str(doc.get("model") or ""),
+             "reason": reason, "model": _text(doc.get("model")),
              "spectrum_state": STATE_CODES.get(doc.get("spectrum_state")),
              "cluster_state": STATE_CODES.get(doc.get("cluster_state")),
-             "agent": str(doc.get("agent") or ""), "boot_id": str(doc.get("boot_id") or ""),
+             "agent": _text(doc.get("agent")), "boot_id": _text(doc.get("boot_id")),
              "seq": doc.get("seq") if isinstance(doc.get("seq"), int) else None}
     rows = []
     if last is None or state != last.state:
@@ -99,6 +115,6 @@ def sample_rows(ident: Identity, doc: dict, last: Last | None, *, trend_period_s
     trend_t = last.trend_t if last else None
     if isinstance(evidence, dict) and evidence and (
             rows or trend_t is None or t - trend_t >= trend_period_s or t < trend_t):
-        rows.append(("trend", {**base, "evidence": {str(k): _number(v) for k, v in evidence.items()}}))
+        rows.append(("trend", {**base, "evidence": {_text(k): _number(v) for k, v in evidence.items()}}))
         trend_t = t
     return rows, Last(state, quality, rkey, trend_t)

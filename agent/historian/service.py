@@ -21,6 +21,7 @@ import json
 import logging
 import os
 import signal
+import sqlite3
 import threading
 import time
 
@@ -41,6 +42,14 @@ WAITING_FOR_DATABASE = "waiting for the database"
 WAITING_FOR_ROUTER = "waiting for a zenoh router"
 
 
+class RefusedBatch(Exception):
+    """PostgreSQL refused a batch for the data of one of its rows (up to buffer id ``last_id``)."""
+
+    def __init__(self, message: str, last_id: int):
+        super().__init__(message)
+        self.last_id = last_id
+
+
 class Historian:
     """One historian: :meth:`start` the threads, :meth:`stop` them; :meth:`status` is the health JSON."""
 
@@ -54,7 +63,8 @@ class Historian:
         self._session = self._subscriber = self._queryable = None
         self._writer_thread: threading.Thread | None = None
         self.heartbeat = time.monotonic()  #: the writer's last pass (the watchdog's proof of progress)
-        self.counters = {"samples": 0, "rejected": 0, "rows_buffered": 0, "rows_written": 0, "batches": 0}
+        self.counters = {"samples": 0, "rejected": 0, "rows_buffered": 0, "rows_written": 0, "batches": 0,
+                         "rows_set_aside": 0, "buffer_errors": 0}
         self.database = {"state": "connecting", "error": "", "schema_version": None, "since": time.time()}
         self.zenoh_state = {"state": "connecting", "error": ""}
         self.retention: dict = {"last_run": None, "deleted": {}}
@@ -112,6 +122,10 @@ class Historian:
             self.counters["rejected"] += 1
             self.last_error = f"{key}: {err}"
             log.warning("ignored a sample on %s: %s", key, err)
+        except sqlite3.Error as err:  # the buffer's disk is full or broken: this sample's rows are lost
+            self.counters["buffer_errors"] += 1
+            self.last_error = f"buffer: {err}"
+            log.error("cannot buffer a sample on %s (%s): its rows are lost", key, err)
 
     def ingest(self, key: str, doc: dict, received_t: float | None = None) -> int:
         """Turn one state sample into rows and buffer them (fsync'd); returns the rows buffered."""
@@ -135,6 +149,7 @@ class Historian:
         backoff = Backoff(db.retry_initial_s, db.retry_max_s)
         conn = writer = None
         next_retention = time.monotonic()
+        one_by_one_through = None  # after a refused batch: rows up to this id go one at a time
         while not self.stop_event.is_set():
             self.heartbeat = time.monotonic()
             try:
@@ -150,17 +165,20 @@ class Historian:
                     self.database = {"state": "connected", "error": "", "schema_version": version, "since": time.time()}
                     log.info("database connected (schema version %d)%s; %d row(s) buffered", version,
                              " after an outage" if was == WAITING_FOR_DATABASE else "", self.buffer.count())
-                batch = self.buffer.oldest(self.cfg.batch_size)
+                self._wake.clear()  # before the read: rows appended after it wake the wait below
+                batch = self.buffer.oldest(1 if one_by_one_through else self.cfg.batch_size)
                 if batch:
-                    self.counters["rows_written"] += writer.write(batch)
-                    self.counters["batches"] += 1
-                    self.buffer.delete_through(batch[-1][0])
+                    self._write(writer, batch)
+                    if one_by_one_through is not None and batch[-1][0] >= one_by_one_through:
+                        one_by_one_through = None
                     continue  # the next batch at once: catching up
                 if time.monotonic() >= next_retention:
                     self._run_retention(conn)
                     next_retention = time.monotonic() + self.cfg.retention.interval_s
                 self._wake.wait(0.5)
-                self._wake.clear()
+            except RefusedBatch as refused:  # bad data in a row, not an outage: find it, set it aside
+                one_by_one_through = refused.last_id
+                log.warning("PostgreSQL refused a batch (%s); writing its rows one by one", refused)
             except Exception as err:  # the server went away, refused us, or a write failed: retry later
                 if conn is not None:
                     try:
@@ -179,6 +197,24 @@ class Historian:
                             self.buffer.count())
         if conn is not None:
             conn.close()
+
+    def _write(self, writer: store.Writer, batch: list) -> None:
+        """Commit ``batch``, then delete it from the buffer. A single row that PostgreSQL refuses
+        for its data is set aside (``RefusedBatch`` for a larger batch)."""
+        psycopg = store.psycopg_module()
+        try:
+            self.counters["rows_written"] += writer.write(batch)
+        except (psycopg.DataError, psycopg.IntegrityError) as err:
+            message = " ".join(str(err).split())
+            if len(batch) > 1:
+                raise RefusedBatch(message, batch[-1][0]) from err
+            self.buffer.set_aside(batch[0][0], message)
+            self.counters["rows_set_aside"] += 1
+            self.last_error = f"row set aside: {message}"
+            log.error("PostgreSQL refused a row; set aside in %s (table set_aside): %s", self.buffer.path, message)
+            return
+        self.counters["batches"] += 1
+        self.buffer.delete_through(batch[-1][0])
 
     def _run_retention(self, conn) -> None:
         r = self.cfg.retention

@@ -58,8 +58,8 @@ CREATE INDEX drive_event_t ON drive_event (t);
 CREATE TABLE evidence_trend (
     drive_id  integer NOT NULL REFERENCES drive,
     t         timestamptz NOT NULL,
-    state     smallint NOT NULL,
-    quality   smallint NOT NULL,
+    state     smallint NOT NULL CHECK (state BETWEEN 0 AND 2),
+    quality   smallint NOT NULL CHECK (quality BETWEEN 0 AND 4),
     evidence  jsonb NOT NULL,
     fe_hz     double precision,
     load_pct  double precision
