@@ -27,6 +27,7 @@ import time
 
 import zenoh
 
+from agent.errors import InputError
 from agent.historian import ingest, store
 from agent.historian.buffer import Buffer
 from agent.historian.config import HistorianConfig
@@ -69,6 +70,7 @@ class Historian:
         self.zenoh_state = {"state": "connecting", "error": ""}
         self.retention: dict = {"last_run": None, "deleted": {}}
         self.last_error = ""
+        self._rejected_keys: set[str] = set()
 
     # --- lifecycle --------------------------------------------------------------------------
 
@@ -118,10 +120,12 @@ class Historian:
         key = str(sample.key_expr)
         try:
             self.ingest(key, json.loads(sample.payload.to_bytes()))
-        except (ValueError, TypeError) as err:  # not a drive state: counted, logged, never raised into zenoh
+        except (ValueError, TypeError) as err:  # not a drive state: counted, logged once per key, never raised
             self.counters["rejected"] += 1
             self.last_error = f"{key}: {err}"
-            log.warning("ignored a sample on %s: %s", key, err)
+            if key not in self._rejected_keys:
+                self._rejected_keys.add(key)
+                log.warning("ignored a sample on %s (not a drive state; further ones are only counted): %s", key, err)
         except sqlite3.Error as err:  # the buffer's disk is full or broken: this sample's rows are lost
             self.counters["buffer_errors"] += 1
             self.last_error = f"buffer: {err}"
@@ -228,13 +232,30 @@ class Historian:
     def status(self) -> dict:
         """The health JSON (status file and zenoh queryable)."""
         return {"historian": self.cfg.historian_id, "pid": os.getpid(), "t": time.time(),
-                "database": dict(self.database), "zenoh": {**self.zenoh_state, "key_expr": self.cfg.zenoh.key_expr},
+                "database": dict(self.database), "zenoh": self._zenoh_status(),
                 "buffered": self.buffer.count(), **self.counters, "last_error": self.last_error,
                 "retention": self.retention, "buffer": str(self.cfg.buffer_path)}
 
+    def _zenoh_status(self) -> dict:
+        """The session's state with the routers (client) or peers it is connected to now: a client
+        whose routers all went away is waiting again while zenoh reconnects it."""
+        doc = {**self.zenoh_state, "key_expr": self.cfg.zenoh.key_expr}
+        session = self._session
+        if session is None:
+            return doc
+        client = self.cfg.zenoh.mode == "client"
+        try:
+            doc["routers" if client else "peers"] = n = len(list(
+                session.info.routers_zid() if client else session.info.peers_zid()))
+        except zenoh.ZError:  # closing
+            return doc
+        if client and n == 0:
+            doc.update(state=WAITING_FOR_ROUTER, error="no router connected (zenoh reconnects by itself)")
+        return doc
+
     def status_line(self) -> str:
         """One line for systemd's STATUS and the log."""
-        waiting = [s["state"] for s in (self.database, self.zenoh_state) if s["state"].startswith("waiting")]
+        waiting = [s["state"] for s in (self.database, self._zenoh_status()) if s["state"].startswith("waiting")]
         return "; ".join(waiting + [f"{self.counters['rows_written']} row(s) written, "
                                     f"{self.buffer.count()} buffered"])
 
@@ -284,6 +305,9 @@ class Historian:
 
 def run_historian(cfg: HistorianConfig, max_seconds: float | None = None) -> int:
     """The ``pmsm-agent historian`` process."""
-    historian = Historian(cfg)
+    try:
+        historian = Historian(cfg)
+    except (OSError, sqlite3.Error) as err:
+        raise InputError(f"state_dir: cannot open the buffer {cfg.buffer_path}: {err}", source=str(cfg.source)) from None
     historian.install_signal_handlers()
     return historian.run(max_seconds)
