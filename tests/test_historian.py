@@ -119,14 +119,14 @@ def router():
     session.close()
 
 
-def write_config(tmp_path, dsn, endpoint, **top):
+def write_config(tmp_path, dsn, endpoint, zenoh_mode="client", **top):
     """A historian config in ``tmp_path``; ``top`` overrides top-level keys and ``retention``."""
     retention = top.pop("retention", {"trend_days": 30.0, "events_days": 365.0, "interval_s": 3600.0})
     keys = {"schema_version": 1, "historian_id": "test-historian", "state_dir": str(tmp_path / "state"),
             "batch_size": 7, "trend_period_s": 10.0, **top}
     lines = [f"{k} = {json.dumps(v)}" for k, v in keys.items()]
     lines += ["[database]", f"dsn = {json.dumps(dsn)}", "connect_timeout_s = 2.0", "retry_initial_s = 0.2",
-              "retry_max_s = 1.0", "[zenoh]", 'mode = "client"', f"connect = [{json.dumps(endpoint)}]",
+              "retry_max_s = 1.0", "[zenoh]", f"mode = {json.dumps(zenoh_mode)}", f"connect = [{json.dumps(endpoint)}]",
               'prefix = "pmsm"', "retry_initial_s = 0.2", "retry_max_s = 1.0", "inline = { \"scouting/delay\" = 0 }",
               "[retention]"] + [f"{k} = {v}" for k, v in retention.items()]
     path = tmp_path / "historian.toml"
@@ -243,6 +243,7 @@ def test_states_reasons_quality_and_trends_land(pg, router, tmp_path):
         with psycopg.connect(dsn, autocommit=True) as conn:  # migrations re-run: no-ops
             assert store.migrate(conn) == store.SCHEMA_VERSION == store.migrate(conn)
             assert conn.execute("SELECT count(*) FROM schema_version").fetchone()[0] == len(store.MIGRATIONS)
+        assert db_rows(dsn)[1][("site-a", "gw2", "d2")] == want_trends  # the data is untouched
 
         h.write_status()
         status = json.loads(h.cfg.status_path.read_text())
@@ -253,6 +254,22 @@ def test_states_reasons_quality_and_trends_land(pg, router, tmp_path):
     finally:
         sink.close()
         site_agent.close()
+        h.stop()
+
+
+def test_peer_mode(pg, router, tmp_path):
+    """A historian in peer mode connected to listed endpoints (here the router's) records too."""
+    dsn = pg.create_database()
+    h = started(write_config(tmp_path, dsn, router, zenoh_mode="peer"))
+    agent = StandInAgent(router, "pmsm/gw1")
+    try:
+        agent.publish("d1", t=time.time(), state="caution", reason=REASON_A)
+        wait_for(lambda: h.counters["rows_written"] == 3, what="state, quality and trend written")
+        events, trends = db_rows(dsn)
+        assert [kind for _, kind in events[("", "gw1", "d1")]] == ["state", "quality"]
+        assert h.status()["zenoh"]["routers"] == 1
+    finally:
+        agent.close()
         h.stop()
 
 

@@ -237,19 +237,18 @@ class Historian:
                 "retention": self.retention, "buffer": str(self.cfg.buffer_path)}
 
     def _zenoh_status(self) -> dict:
-        """The session's state with the routers (client) or peers it is connected to now: a client
-        whose routers all went away is waiting again while zenoh reconnects it."""
+        """The session's state with the routers and peers it is connected to now: a client whose
+        routers all went away is waiting again while zenoh reconnects it."""
         doc = {**self.zenoh_state, "key_expr": self.cfg.zenoh.key_expr}
         session = self._session
         if session is None:
             return doc
-        client = self.cfg.zenoh.mode == "client"
         try:
-            doc["routers" if client else "peers"] = n = len(list(
-                session.info.routers_zid() if client else session.info.peers_zid()))
+            doc["routers"] = len(list(session.info.routers_zid()))
+            doc["peers"] = len(list(session.info.peers_zid()))
         except zenoh.ZError:  # closing
             return doc
-        if client and n == 0:
+        if self.cfg.zenoh.mode == "client" and doc["routers"] == 0:
             doc.update(state=WAITING_FOR_ROUTER, error="no router connected (zenoh reconnects by itself)")
         return doc
 
