@@ -11,7 +11,6 @@ import socket
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 import uuid
 from pathlib import Path
@@ -74,7 +73,7 @@ class PgServer:
     def _pg(self, tool, *args):
         cmd = [str(self.bindir / tool), *args]
         cmd = ["runuser", "-u", "postgres", "--", *cmd] if self.as_postgres else cmd
-        r = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+        r = subprocess.run(cmd, capture_output=True, text=True, timeout=60, cwd=self.base)  # a dir postgres may enter
         assert r.returncode == 0, f"{tool}: {r.stdout}{r.stderr}"
 
     def start(self):
@@ -136,7 +135,8 @@ def write_config(tmp_path, dsn, endpoint, zenoh_mode="client", **top):
 
 class StandInAgent:
     """Puts drive states on ``<prefix>/<drive>/state`` with ZenohSink's payload (its fields and
-    ``schema``, ``state_code``, ``quality_code``, ``agent``, ``boot_id``, ``seq``), the time ``t`` chosen by the test."""
+    ``schema``, ``state_code``, ``quality_code``, ``agent``, ``boot_id``, ``seq``), with the time
+    ``t`` chosen by the test."""
 
     def __init__(self, endpoint, prefix, agent_id="edge1"):
         self.session = zenoh.open(zenoh_config("client", [], [endpoint], FAST))
@@ -278,7 +278,8 @@ def test_outage_loses_nothing_and_writes_each_row_once(pg, router, tmp_path):
     every row is there exactly once (the lists below keep duplicates)."""
     dsn = pg.create_database()
     h = started(write_config(tmp_path, dsn, router))
-    agents = {("", "gw1", "d1"): StandInAgent(router, "pmsm/gw1"), ("s1", "gw2", "d2"): StandInAgent(router, "pmsm/s1/gw2")}
+    agents = {("", "gw1", "d1"): StandInAgent(router, "pmsm/gw1"),
+              ("s1", "gw2", "d2"): StandInAgent(router, "pmsm/s1/gw2")}
     t0 = time.time() - 600
     samples = list(schedule(t0))
     try:

@@ -4,9 +4,10 @@ SQLite in the state directory, WAL with ``synchronous=FULL`` (as the agent's jou
 :meth:`Buffer.append` returns, the rows survive a killed process and a power cut. Rows leave
 only through :meth:`Buffer.delete_through`, which the writer calls after PostgreSQL committed
 them, or through :meth:`Buffer.set_aside` when PostgreSQL refuses a row itself (kept, with the
-error, in the ``set_aside`` table). Ids grow and are never reused (AUTOINCREMENT), and each buffer file has its own random
-``buffer_id``: PostgreSQL keeps the highest id written per buffer, so a batch committed but not
-yet deleted here (the process died in between) is skipped when it is sent again.
+error, in the ``set_aside`` table). Ids grow and are never reused (AUTOINCREMENT), and each
+buffer file has its own random ``buffer_id``: PostgreSQL keeps the highest id written per
+buffer, so a batch committed but not yet deleted here (the process died in between) is skipped
+when it is sent again.
 
 The last recorded state of each drive (:class:`agent.historian.ingest.Last`) is stored in the
 same transaction as the rows it produced, so a restart neither repeats nor misses a change.

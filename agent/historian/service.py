@@ -307,6 +307,7 @@ def run_historian(cfg: HistorianConfig, max_seconds: float | None = None) -> int
     try:
         historian = Historian(cfg)
     except (OSError, sqlite3.Error) as err:
-        raise InputError(f"state_dir: cannot open the buffer {cfg.buffer_path}: {err}", source=str(cfg.source)) from None
+        raise InputError(f"state_dir: cannot open the buffer {cfg.buffer_path}: {err}",
+                         source=str(cfg.source)) from None
     historian.install_signal_handlers()
     return historian.run(max_seconds)
