@@ -72,7 +72,8 @@ class PgServer:
 
     def _pg(self, tool, *args):
         cmd = [str(self.bindir / tool), *args]
-        cmd = ["runuser", "-u", "postgres", "--", *cmd] if self.as_postgres else cmd
+        runuser = shutil.which("runuser") or "/usr/sbin/runuser"  # util-linux; sbin may be off PATH
+        cmd = [runuser, "-u", "postgres", "--", *cmd] if self.as_postgres else cmd
         r = subprocess.run(cmd, capture_output=True, text=True, timeout=60, cwd=self.base)  # a dir postgres may enter
         assert r.returncode == 0, f"{tool}: {r.stdout}{r.stderr}"
 
