@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 PYTEST_ARGS ?=
 
-.PHONY: setup setup-test demo test test-full bench bench-alarms bench-workbench bench-detection docs clean gateway
+.PHONY: setup setup-test demo test test-full bench bench-alarms bench-workbench bench-detection docs clean gateway historian
 
 setup: $(VENV)/.stamp-run
 
@@ -23,14 +23,18 @@ $(VENV)/.stamp-run: $(BIN)/python requirements.lock requirements-workbench.lock 
 
 # A lean gateway install into GATEWAY_VENV (default /opt/pmsm-agent/.venv): the agent, its
 # transports and the C kernels; no workbench, no simulator (docs/benchmarks.md has its size).
+# `make historian` is the same plus the PostgreSQL client, for the plant server that runs
+# `pmsm-agent historian` (docs/historian.md).
 GATEWAY_VENV ?= /opt/pmsm-agent/.venv
-gateway:
+gateway: INSTALL_LOCK := requirements.lock
+historian: INSTALL_LOCK := requirements-historian.lock
+gateway historian:
 	$(PY) -m venv $(GATEWAY_VENV)
 	$(GATEWAY_VENV)/bin/python -m pip install -q --upgrade pip
-	$(GATEWAY_VENV)/bin/pip install -q -r requirements.lock
+	$(GATEWAY_VENV)/bin/pip install -q -r $(INSTALL_LOCK)
 	$(GATEWAY_VENV)/bin/pip install -q --no-deps --no-build-isolation . >/dev/null
 
-$(VENV)/.stamp-test: $(VENV)/.stamp-run requirements-test.lock
+$(VENV)/.stamp-test: $(VENV)/.stamp-run requirements-test.lock requirements-historian.lock
 	$(BIN)/pip install -q -r requirements-test.lock
 	touch $@
 

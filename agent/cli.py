@@ -27,7 +27,8 @@ log = logging.getLogger("pmsm-agent")
 #: handlers take the parsed args and raise ``InputError`` for user errors.
 #: what the gateway install leaves out (pyproject's ``workbench`` extra)
 WORKBENCH_MODULES = ("scipy", "numba", "matplotlib", "llvmlite")
-EXTENSIONS: tuple[str, ...] = ("agent.runtime.cli", "agent.runtime.commissioning", "agent.workbench.cli")
+EXTENSIONS: tuple[str, ...] = ("agent.runtime.cli", "agent.runtime.commissioning", "agent.workbench.cli",
+                               "agent.historian.cli")
 
 
 # --- helpers --------------------------------------------------------------------------------
