@@ -31,6 +31,7 @@ from agent.errors import InputError
 from agent.historian import ingest, store
 from agent.historian.buffer import Buffer
 from agent.historian.config import HistorianConfig
+from agent.historian.page import FleetPage
 from agent.runtime import sdnotify
 from protocols.streaming import Backoff
 from protocols.zenoh_sink import _at_shutdown, zenoh_config
@@ -71,10 +72,15 @@ class Historian:
         self.retention: dict = {"last_run": None, "deleted": {}}
         self.last_error = ""
         self._rejected_keys: set[str] = set()
+        self.page = FleetPage(cfg, self.status) if cfg.page.enabled else None  #: the fleet page's server
 
     # --- lifecycle --------------------------------------------------------------------------
 
     def start(self) -> None:
+        """Serve the fleet page (if enabled; ``InputError`` naming page.host/page.port when its
+        address cannot be used) and start the writer thread."""
+        if self.page is not None:
+            self.page.start()
         self._writer_thread = threading.Thread(target=self._write_loop, name="historian-writer", daemon=True)
         self._writer_thread.start()
 
@@ -83,6 +89,8 @@ class Historian:
         Returns the rows left in the buffer (written at the next start)."""
         self.stop_event.set()
         self._wake.set()
+        if self.page is not None:
+            self.page.stop()
         session, self._session = self._session, None
         if session is not None:
             try:
@@ -234,7 +242,8 @@ class Historian:
         return {"historian": self.cfg.historian_id, "pid": os.getpid(), "t": time.time(),
                 "database": dict(self.database), "zenoh": self._zenoh_status(),
                 "buffered": self.buffer.count(), **self.counters, "last_error": self.last_error,
-                "retention": self.retention, "buffer": str(self.cfg.buffer_path)}
+                "retention": self.retention, "buffer": str(self.cfg.buffer_path),
+                "page": self.page.url if self.page is not None else None}
 
     def _zenoh_status(self) -> dict:
         """The session's state with the routers and peers it is connected to now: a client whose
