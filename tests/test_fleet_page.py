@@ -44,7 +44,10 @@ def page_config(tmp_path, dsn, **page):
 
 
 def evidence_at(drive: str, age_h: float) -> dict:
-    """Each drive's evidence per family ``age_h`` hours ago (1 = the caution threshold)."""
+    """Each drive's evidence per family ``age_h`` hours ago (1 = the caution threshold); none
+    for d9, which has no model yet."""
+    if drive == "d9":
+        return {}
     wobble = 0.5 + 0.5 * math.sin(age_h * 1.7 + int(drive[1:]))  # a healthy drive's evidence moves a little
     ev = {"bearing_outer": round(0.08 + 0.1 * wobble, 3), "cluster": 0.05, "gear_driven": round(0.3 * wobble, 3),
           "gear_driving": round(0.15 + 0.05 * wobble, 3)}
@@ -67,6 +70,8 @@ def state_at(drive: str, age_h: float, ev: dict) -> tuple[str, str, dict | None]
         return "caution", "good", REASON_ESCAPED
     if drive == "d4":
         return "normal", "learning", None
+    if drive == "d9":
+        return "normal", "no_model", None
     if drive == "d5" and age_h < 1.0:
         return "normal", "stale", None
     return "normal", "good", None
@@ -76,21 +81,24 @@ def state_at(drive: str, age_h: float, ev: dict) -> tuple[str, str, dict | None]
 PLANT = [("pmsm/hall-a/gw1/d1/state", "d1", 26, 0), ("pmsm/hall-a/gw1/d2/state", "d2", 26, 0),
          ("pmsm/hall-a/gw1/d3/state", "d3", 26, 0), ("pmsm/gw2/d4/state", "d4", 26, 0),
          ("pmsm/gw2/d5/state", "d5", 26, 0), ("pmsm/gw2/d6/state", "d6", 8, 0),
+         ("pmsm/gw2/d9/state", "d9", 26, 0),  # no model: no trend rows, and one state event 26 h ago
          ("pmsm/gw3/d7/state", "d7", 26, 0.4),  # silent for 24 min
          ("pmsm/gw3/d8/state", "d8", 2, 72)]  # not heard from for 3 days
 
 
 def publish_plant(h: Historian, now: float) -> int:
-    """Hand the plant's samples, oldest first per drive, to the historian; returns their count."""
+    """Hand the plant's samples, oldest first per drive, to the historian as if each had arrived
+    at its time ``t``; returns their count."""
     n = 0
     for key, drive, hours, silent_h in PLANT:
         for k in range(round(hours * HOUR / STEP_S) + 1):
             age = silent_h + hours - k * STEP_S / HOUR
             ev = evidence_at(drive, age)
             state, quality, reason = state_at(drive, age, ev)
-            h.ingest(key, {"drive": drive, "agent": key.split("/")[-3], "t": now - age * HOUR, "state": state,
-                           "quality": quality, "reason": reason, "evidence": ev, "fe_hz": 50.0, "load_pct": 75.0,
-                           "model": "op-50hz"})
+            t = now - age * HOUR
+            h.ingest(key, {"drive": drive, "agent": key.split("/")[-3], "t": t, "state": state, "quality": quality,
+                           "reason": reason, "evidence": ev, "fe_hz": 50.0, "load_pct": 75.0,
+                           "model": "" if drive == "d9" else "op-50hz"}, received_t=t)
             n += 1
     return n
 
@@ -123,10 +131,14 @@ def get(url: str, gzipped: bool = False) -> tuple[int, dict, bytes]:
     return status, headers, gzip.decompress(body) if headers.get("Content-Encoding") == "gzip" else body
 
 
+def card_of(page: str, drive: str) -> str:
+    """The card of ``drive`` (its full name) on the page."""
+    return page.split(f'data-drive="{drive}"', 1)[1].split('<div class="card', 1)[0]
+
+
 def svg_of(page: str, drive: str, family: str) -> str:
-    """The trend SVG of ``family`` in the card of ``drive`` (its full name)."""
-    card = page.split(f'data-drive="{drive}"', 1)[1].split('<div class="card', 1)[0]
-    return card.split(f'data-family="{family}"', 1)[1].split("</svg>", 1)[0]
+    """The trend SVG of ``family`` in the card of ``drive``."""
+    return card_of(page, drive).split(f'data-family="{family}"', 1)[1].split("</svg>", 1)[0]
 
 
 def above_caution_line(svg: str) -> int:
@@ -140,7 +152,7 @@ def above_caution_line(svg: str) -> int:
 
 def test_fleet_json_worst_first_with_trends_and_reasons(plant):
     h, now = plant
-    url = h.status()["page"]
+    url = h.status()["page"]["url"]
     assert re.fullmatch(r"http://127\.0\.0\.1:\d+/", url)
     status, headers, body = get(url + "fleet.json")
     assert status == 200 and headers["Content-Type"] == "application/json"
@@ -148,18 +160,21 @@ def test_fleet_json_worst_first_with_trends_and_reasons(plant):
     order = [(d["site"], d["gateway"], d["drive"]) for d in doc["drives"]]
     # groups by their worst drive: warning, then the silent drive's gateway, then the poor data quality
     assert order == [("hall-a", "gw1", "d1"), ("hall-a", "gw1", "d3"), ("hall-a", "gw1", "d2"),
-                     ("", "gw3", "d7"), ("", "gw2", "d5"), ("", "gw2", "d4"), ("", "gw2", "d6")]
+                     ("", "gw3", "d7"), ("", "gw2", "d5"), ("", "gw2", "d9"), ("", "gw2", "d4"), ("", "gw2", "d6")]
     by_name = {d["drive"]: d for d in doc["drives"]}
-    looks = [(by_name[n]["state"], by_name[n]["quality"], by_name[n]["silent"]) for n in ("d1", "d3", "d7", "d5", "d4")]
+    looks = [(by_name[n]["state"], by_name[n]["quality"], by_name[n]["silent"])
+             for n in ("d1", "d3", "d7", "d5", "d9", "d4")]
     assert looks == [("warning", "good", False), ("caution", "good", False), ("normal", "good", True),
-                     ("normal", "stale", False), ("normal", "learning", False)]
+                     ("normal", "stale", False), ("normal", "no_model", False), ("normal", "learning", False)]
+    # d9 wrote nothing since its first sample 26 h ago, but the historian heard it just now: not silent
+    assert by_name["d9"]["last_t"] == pytest.approx(now) and by_name["d9"]["trend"] == {"t": [], "evidence": {}}
     assert by_name["d1"]["reason"] == REASON_GROSS and by_name["d3"]["reason"] == REASON_GEAR
     assert by_name["d2"]["reason"] is None
     assert abs(by_name["d1"]["state_since"] - (now - 0.7 * HOUR)) < 2 * STEP_S
     assert [d["drive"] for d in doc["offline"]] == ["d8"]
-    assert doc["counts"] == {"drives": 8, "normal": 5, "caution": 1, "warning": 1, "silent": 1, "poor_quality": 2,
+    assert doc["counts"] == {"drives": 9, "normal": 6, "caution": 1, "warning": 1, "silent": 1, "poor_quality": 3,
                              "offline": 1}
-    for d in doc["drives"]:
+    for d in (d for d in doc["drives"] if d["drive"] != "d9"):
         trend = d["trend"]
         assert sorted(trend["evidence"]) == list(FAMILIES), d["drive"]
         full_day = d["drive"] not in ("d6", "d7")  # d6 began 8 h ago, d7 fell silent
@@ -178,14 +193,15 @@ def test_fleet_json_worst_first_with_trends_and_reasons(plant):
 
 def test_fleet_page_html(plant):
     h, now = plant
-    status, headers, body = get(h.status()["page"], gzipped=True)
+    status, headers, body = get(h.status()["page"]["url"], gzipped=True)
     assert status == 200 and headers["Content-Type"] == "text/html; charset=utf-8"
     assert headers["Content-Encoding"] == "gzip" and "script-src" not in headers["Content-Security-Policy"]
     page = body.decode()
     assert '<meta http-equiv="refresh" content="30">' in page and "<script" not in page
     cards = re.findall(r'<div class="card (\w+)" data-drive="([^"]+)"', page)
     assert cards == [("warning", "hall-a/gw1/d1"), ("caution", "hall-a/gw1/d3"), ("normal", "hall-a/gw1/d2"),
-                     ("silent", "gw3/d7"), ("normal", "gw2/d5"), ("normal", "gw2/d4"), ("normal", "gw2/d6")]
+                     ("silent", "gw3/d7"), ("normal", "gw2/d5"), ("normal", "gw2/d9"), ("normal", "gw2/d4"),
+                     ("normal", "gw2/d6")]
     assert re.findall(r'<h2 class="group">([^<]+)', page) == ["hall-a / gw1 ", "gw3 ", "gw2 "]
     # one plot per family and drive, each with its caution line
     assert page.count('<svg class="trend"') == page.count('class="caution-line"') == 7 * len(FAMILIES)
@@ -197,6 +213,7 @@ def test_fleet_page_html(plant):
     # the reasons, escaped; the drive not heard from in the window is listed without plots
     assert "why: path=gross feature=cluster z=11.2 threshold=6.0" in page
     assert "&lt;b&gt;bpfo&lt;/b&gt; &amp; &quot;sidebands&quot;" in page and "<b>bpfo" not in page
+    assert "no evidence trend in the last 24 h" in card_of(page, "gw2/d9") and "<svg" not in card_of(page, "gw2/d9")
     assert "Not heard from in the last 24 h (1)" in page and "gw3/d8" in page
     assert 'data-drive="gw3/d8"' not in page
     assert "historian page-test: database connected" in page
@@ -209,12 +226,12 @@ def test_fleet_page_in_headless_chromium(plant, tmp_path):
     if browser is None:
         pytest.skip("no headless Chromium installed (apt-get install -y chromium); .ci/run installs it")
     h, _ = plant
-    url = h.status()["page"]
+    url = h.status()["page"]["url"]
     flags = [browser, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars", "--no-first-run",
              "--disable-background-networking", "--disable-component-update", "--disable-sync",
              f"--user-data-dir={tmp_path / 'chromium'}", "--window-size=1280,1600"]
     dom = subprocess.run(flags + ["--dump-dom", url], capture_output=True, text=True, timeout=120).stdout
-    assert len(re.findall(r'<div class="card \w+" data-drive=', dom)) == 7
+    assert len(re.findall(r'<div class="card \w+" data-drive=', dom)) == 8
     assert dom.count('class="caution-line"') == 7 * len(FAMILIES) and "ongoing" in dom
     shot = tmp_path / "fleet.png"
     subprocess.run(flags + [f"--screenshot={shot}", url], capture_output=True, timeout=120, check=False)
@@ -223,7 +240,7 @@ def test_fleet_page_in_headless_chromium(plant, tmp_path):
 
 def test_other_paths_and_an_unreachable_database(plant, tmp_path):
     h, _ = plant
-    status, _, body = get(h.status()["page"] + "drives")
+    status, _, body = get(h.status()["page"]["url"] + "drives")
     assert status == 404 and b"/fleet.json" in body
     closed = f"host=127.0.0.1 port={h.cfg.database.dsn.split('port=')[1].split()[0]} user=nobody dbname=none"
     down = Historian(page_config(tmp_path, closed))
@@ -238,13 +255,19 @@ def test_other_paths_and_an_unreachable_database(plant, tmp_path):
         down.stop()
 
 
-def test_a_taken_port_is_a_config_error(plant, tmp_path):
-    h, _ = plant
-    port = int(h.status()["page"].rsplit(":", 1)[1].strip("/"))
-    other = Historian(page_config(tmp_path, h.cfg.database.dsn, port=port))
+def test_a_taken_port_is_named_and_recording_goes_on(plant, pg, tmp_path):
+    """A page whose address is taken is reported (naming the keys) and retried; the historian
+    records meanwhile."""
+    h, now = plant
+    port = int(h.status()["page"]["url"].rsplit(":", 1)[1].strip("/"))
+    other = Historian(page_config(tmp_path, pg.create_database(), port=port))
+    other.start()
     try:
-        with pytest.raises(InputError, match=rf"page.host, page.port: cannot serve the fleet page on 127.0.0.1:{port}"):
-            other.start()
+        page = other.status()["page"]
+        assert page["url"] is None
+        assert f"page.host, page.port: cannot serve the fleet page on 127.0.0.1:{port}" in page["error"]
+        assert "the fleet page is not served (page.host, page.port)" in other.status_line()
+        assert other.ingest("pmsm/gw9/d9/state", {"t": now, "state": "normal", "quality": "good"}) == 2
     finally:
         other.stop()
 

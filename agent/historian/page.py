@@ -23,6 +23,8 @@ import gzip
 import html
 import json
 import logging
+import socket
+import socketserver
 import threading
 import time
 from collections.abc import Callable
@@ -53,9 +55,13 @@ def _severity(d: dict) -> tuple:
             QUALITY_SEVERITY.get(d["quality"], 0))
 
 
-def fleet_snapshot(conn, cfg: PageCfg, now: float | None = None) -> dict:
-    """The fleet page's data (``/fleet.json``): drives worst first, grouped by site/gateway."""
+def fleet_snapshot(conn, cfg: PageCfg, heard: dict | None = None, now: float | None = None) -> dict:
+    """The fleet page's data (``/fleet.json``): drives worst first, grouped by site/gateway.
+
+    ``heard`` maps (site, gateway, drive) to when this historian last received a sample of the
+    drive: a drive without evidence (no model yet) writes no row while nothing changes."""
     now = time.time() if now is None else now
+    heard = heard or {}
     since = now - cfg.window_h * 3600.0
     drives = store.fleet_now(conn)
     trends = store.trend_samples(conn, since, now, cfg.trend_points)
@@ -66,6 +72,7 @@ def fleet_snapshot(conn, cfg: PageCfg, now: float | None = None) -> dict:
     active, offline = [], []
     for d in drives:
         ident = (d["site"], d["gateway"], d["drive"])
+        d["last_t"] = max((t for t in (d["last_t"], heard.get(ident)) if t is not None), default=None)
         samples = trends.get(ident, [])
         families = sorted({f for _, ev in samples for f in ev} | set(d["evidence"]))
         d["silent"] = d["last_t"] is None or now - d["last_t"] > cfg.silent_after_s
@@ -80,7 +87,7 @@ def fleet_snapshot(conn, cfg: PageCfg, now: float | None = None) -> dict:
     counts = {"drives": len(drives), **{s: sum(d["state"] == s for d in active) for s in store.STATE_CODES},
               "silent": sum(d["silent"] for d in active), "poor_quality": sum(d["quality"] != "good" for d in active),
               "offline": len(offline)}
-    return {"t": now, "since": since, "until": now, "window_h": cfg.window_h, "refresh_s": cfg.refresh_s,
+    return {"since": since, "until": now, "window_h": cfg.window_h, "refresh_s": cfg.refresh_s,
             "trend_points": cfg.trend_points, "caution_level": CAUTION_LEVEL, "silent_after_s": cfg.silent_after_s,
             "counts": counts, "drives": [d for ds in ordered for d in ds],
             "offline": sorted(offline, key=lambda d: (-(d["last_t"] or 0), _name(d))), "alarms": alarms}
@@ -116,7 +123,7 @@ aside h2{margin-left:12px}
 .cards{display:grid;grid-template-columns:repeat(auto-fill,minmax(390px,1fr));gap:10px;margin:0 14px}
 .card{background:#161e27;border-left:7px solid #2c9a55;border-radius:5px;padding:7px 10px 8px}
 .card.warning{border-color:#e5383b;background:#2b171a}.card.caution{border-color:#f4a11d;background:#2a2314}
-.card.silent{border-color:#6c5ce7}
+.card.silent{border-color:#6c5ce7}.card.unknown{border-color:#6b7785}
 .card .top{display:flex;align-items:baseline;gap:8px;flex-wrap:wrap}
 .card .name{font-size:19px;font-weight:700;margin-right:auto}
 .card .info{color:#9fb2c4;font-size:13px;margin-top:2px}.card .info span{white-space:nowrap}
@@ -211,7 +218,8 @@ def _value(v) -> str:
 
 
 def _card(d: dict, snap: dict, number: int) -> str:
-    now, since, until = snap["t"], snap["since"], snap["until"]
+    since, until = snap["since"], snap["until"]
+    now = until
     state = d["state"]
     look = "silent" if d["silent"] and state == "normal" else state
     badges = [f'<span class="badge s-{_e(state)}">{_e(state)}</span>',
@@ -271,7 +279,7 @@ def _page(title: str, refresh_s: float, header: str, body: str) -> str:
 
 def render_html(snap: dict, historian: dict) -> str:
     """The fleet page for :func:`fleet_snapshot`'s data, and the historian's status line."""
-    now, c = snap["t"], snap["counts"]
+    now, c = snap["until"], snap["counts"]
     chips = [f'<span class="count s-warning">{c["warning"]} warning</span>' if c["warning"] else "",
              f'<span class="count s-caution">{c["caution"]} caution</span>' if c["caution"] else "",
              f'<span class="count s-normal">{c["normal"]} normal</span>',
@@ -322,10 +330,15 @@ class FleetPage:
     """The page's data, read at most every :data:`SNAPSHOT_MAX_AGE_S` on a connection of its own,
     and its HTTP server (:meth:`start`, :meth:`stop`)."""
 
-    def __init__(self, cfg: HistorianConfig, historian_status: Callable[[], dict]):
-        self.cfg, self.historian_status = cfg, historian_status
+    def __init__(self, cfg: HistorianConfig, historian_status: Callable[[], dict],
+                 heard: Callable[[], dict] = dict):
+        """``historian_status()``: the historian's status; ``heard()``: when each drive's last
+        sample arrived (see :func:`fleet_snapshot`)."""
+        self.cfg, self.historian_status, self.heard = cfg, historian_status, heard
         self._lock = threading.Lock()  # one read at a time; the others wait and share it
         self._conn = None
+        self._snapshot: dict | None = None
+        self._error = ""  # why there is no snapshot
         self._read_at = -SNAPSHOT_MAX_AGE_S
         self._bodies: dict = {}  # kind or (kind, "gzip") -> (status, body), per read
         self._server: ThreadingHTTPServer | None = None
@@ -351,7 +364,7 @@ class FleetPage:
                 db = self.cfg.database
                 self._conn = store.connect(db.dsn, db.connect_timeout_s)
                 self._conn.execute(f"SET statement_timeout = {STATEMENT_TIMEOUT_MS}")
-            return fleet_snapshot(self._conn, self.cfg.page), ""
+            return fleet_snapshot(self._conn, self.cfg.page, self.heard()), ""
         except psycopg.errors.UndefinedTable:
             return None, "no history tables in the database yet (the historian creates them once it connects)"
         except psycopg.Error as err:
@@ -370,14 +383,14 @@ class FleetPage:
     def start(self) -> None:
         """Listen on ``page.host``:``page.port`` and serve in a thread; ``InputError`` naming the keys
         when the address cannot be used."""
-        page, fleet = self.cfg.page, self
+        page = self.cfg.page
         try:
-            self._server = ThreadingHTTPServer((page.host, page.port), _handler(fleet))
+            family = socket.getaddrinfo(page.host, page.port, type=socket.SOCK_STREAM)[0][0]
+            self._server = _Server((page.host, page.port), _handler(self), family)
         except OSError as err:
             raise InputError(f"page.host, page.port: cannot serve the fleet page on {page.host}:{page.port} "
                              f"({err.strerror or err})",
                              source=str(self.cfg.source) if self.cfg.source else None) from None
-        self._server.daemon_threads = True
         host, port = self._server.server_address[:2]
         self.url = f"http://{f'[{host}]' if ':' in host else host}:{port}/"
         threading.Thread(target=self._server.serve_forever, name="historian-page", daemon=True).start()
@@ -399,6 +412,21 @@ class FleetPage:
             except Exception:
                 pass
             self._conn = None
+
+
+class _Server(ThreadingHTTPServer):
+    """``ThreadingHTTPServer`` on the address's family (IPv4 or IPv6), without ``HTTPServer``'s
+    reverse DNS lookup of its own address (slow where no DNS server answers)."""
+
+    daemon_threads = True
+
+    def __init__(self, address, handler, family):
+        self.address_family = family
+        super().__init__(address, handler)
+
+    def server_bind(self):
+        socketserver.TCPServer.server_bind(self)
+        self.server_name, self.server_port = self.server_address[:2]
 
 
 def _handler(fleet: FleetPage) -> type[BaseHTTPRequestHandler]:
