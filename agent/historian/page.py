@@ -278,7 +278,7 @@ def _page(title: str, refresh_s: float, header: str, body: str) -> str:
 
 
 def render_html(snap: dict, historian: dict) -> str:
-    """The fleet page for :func:`fleet_snapshot`'s data, and the historian's status line."""
+    """The fleet page for :func:`fleet_snapshot`'s data, with ``historian`` (its status) in the header."""
     now, c = snap["until"], snap["counts"]
     chips = [f'<span class="count s-warning">{c["warning"]} warning</span>' if c["warning"] else "",
              f'<span class="count s-caution">{c["caution"]} caution</span>' if c["caution"] else "",
@@ -291,8 +291,8 @@ def render_html(snap: dict, historian: dict) -> str:
     header = (f'<h1>Drive fleet</h1>{"".join(chips)}{legend}<span class="meta">{c["drives"]} drives · updated '
               f'{_e(time.strftime("%H:%M:%S", time.localtime(now)))} {_e(time.strftime("%Z"))} · reloads every '
               f'{snap["refresh_s"]:g} s<br>historian {_e(historian.get("historian", ""))}: database '
-              f'{_e(historian.get("database", {}).get("state", "?"))}, {historian.get("buffered", 0)} row(s) buffered'
-              f'</span>')
+              f'{_e(historian.get("database", {}).get("state", "?"))}, '
+              f'{_e(historian.get("buffered", 0))} row(s) buffered</span>')
     more = len(snap["alarms"]) - ALARMS_SHOWN
     side = (f'<aside><h2>Alarms, last {snap["window_h"]:g} h ({len(snap["alarms"])})</h2>'
             + (_alarm_items(snap["alarms"], now) or '<div class="none">none</div>')
@@ -320,7 +320,7 @@ def render_html(snap: dict, historian: dict) -> str:
 def render_error(message: str, historian: dict, refresh_s: float) -> str:
     """The page while the database cannot be read: what is wrong; it keeps reloading."""
     header = (f'<h1>Drive fleet</h1><span class="meta">historian {_e(historian.get("historian", ""))}: '
-              f'{historian.get("buffered", 0)} row(s) buffered · reloads every {refresh_s:g} s</span>')
+              f'{_e(historian.get("buffered", 0))} row(s) buffered · reloads every {refresh_s:g} s</span>')
     return _page("Drive fleet: no data", refresh_s, header, f'<div class="error">{_e(message)}</div>')
 
 
