@@ -210,6 +210,11 @@ def test_fleet_page_html(plant):
     assert all(above_caution_line(svg_of(page, "hall-a/gw1/d2", f)) == 0 for f in FAMILIES)
     assert 'class="alarm-band"' in svg_of(page, "gw2/d6", "bearing_outer")  # the cleared episode, shaded
     assert 'class="alarm-band"' not in svg_of(page, "hall-a/gw1/d2", "cluster")
+    # beside the cards: the alarms raised now, worst first, then those cleared in the window
+    side = page.split("<aside>", 1)[1]
+    assert "Raised now (2)" in side and "Cleared, last 24 h (1)" in side
+    assert re.findall(r'<div class="alarm (\w+)">.*?<b>([^<]+)</b>', side) == [
+        ("warning", "hall-a/gw1/d1"), ("caution", "hall-a/gw1/d3"), ("caution", "gw2/d6")]
     # the reasons, escaped; the drive not heard from in the window is listed without plots
     assert "why: path=gross feature=cluster z=11.2 threshold=6.0" in page
     assert "&lt;b&gt;bpfo&lt;/b&gt; &amp; &quot;sidebands&quot;" in page and "<b>bpfo" not in page

@@ -8,7 +8,8 @@ The historian serves it over HTTP (standard library ``http.server``, one thread 
   normal), each with one small inline SVG per fault family: the evidence over the last
   ``page.window_h`` hours, the dashed caution line at evidence 1 (docs/historian.md, the
   ``evidence_trend`` table), and the caution/warning periods shaded. Drives not heard from in
-  the whole window are listed at the end, without plots.
+  the whole window are listed at the end, without plots. Beside them, the alarms raised now
+  (worst first) and those cleared in the window (newest first), with their reasons.
 * ``/fleet.json``: the same data.
 
 The data is read with three queries whatever the number of drives (:func:`store.fleet_now`,
@@ -38,7 +39,7 @@ log = logging.getLogger("pmsm-agent.historian")
 SNAPSHOT_MAX_AGE_S = 5.0  #: requests within this long of the last read share it, s
 STATEMENT_TIMEOUT_MS = 20_000  #: the page's queries are cancelled after this long
 CAUTION_LEVEL = 1.0  #: evidence is CUSUM / caution threshold: 1 is where caution is raised
-ALARMS_SHOWN = 30  #: the page lists the newest alarms; /fleet.json has them all
+ALARMS_SHOWN = 30  #: the page lists this many raised and this many cleared alarms; /fleet.json has them all
 #: the order of "worst" for data quality (codes are CONTRACT section 6's, not an order of badness)
 QUALITY_SEVERITY = {"bad_input": 4, "stale": 3, "no_model": 2, "learning": 1, "good": 0}
 
@@ -260,7 +261,7 @@ def _card(d: dict, snap: dict, number: int) -> str:
 
 def _alarm_items(alarms: list[dict], now: float) -> str:
     items = []
-    for a in alarms[:ALARMS_SHOWN]:
+    for a in alarms:
         end = "ongoing" if a["end"] is None else _clock(a["end"], now)
         lasted = _age((a["end"] if a["end"] is not None else now) - a["start"])
         reasons = "".join(f"<div>{_e(store.reason_text(r))}</div>" for r in a["reasons"][:3])
@@ -293,10 +294,17 @@ def render_html(snap: dict, historian: dict) -> str:
               f'{snap["refresh_s"]:g} s<br>historian {_e(historian.get("historian", ""))}: database '
               f'{_e(historian.get("database", {}).get("state", "?"))}, '
               f'{_e(historian.get("buffered", 0))} row(s) buffered</span>')
-    more = len(snap["alarms"]) - ALARMS_SHOWN
-    side = (f'<aside><h2>Alarms, last {snap["window_h"]:g} h ({len(snap["alarms"])})</h2>'
-            + (_alarm_items(snap["alarms"], now) or '<div class="none">none</div>')
-            + (f'<div class="none">and {more} older in fleet.json</div>' if more > 0 else "") + "</aside>")
+    raised = sorted((a for a in snap["alarms"] if a["end"] is None),
+                    key=lambda a: (-store.STATE_CODES[a["state"]], -a["start"]))
+    cleared = [a for a in snap["alarms"] if a["end"] is not None]
+    side = ["<aside>"]
+    for title, alarms in ((f"Raised now ({len(raised)})", raised),
+                          (f'Cleared, last {snap["window_h"]:g} h ({len(cleared)})', cleared)):
+        more = len(alarms) - ALARMS_SHOWN
+        side.append(f"<h2>{_e(title)}</h2>"
+                    + (_alarm_items(alarms[:ALARMS_SHOWN], now) or '<div class="none">none</div>')
+                    + (f'<div class="none">and {more} more in fleet.json</div>' if more > 0 else ""))
+    side.append("</aside>")
     body = []
     groups: dict[tuple[str, str], list] = {}
     for number, d in enumerate(snap["drives"]):
@@ -314,7 +322,7 @@ def render_html(snap: dict, historian: dict) -> str:
                 f'is raised; shaded: caution (amber) and warning (red) periods; grid: quarters of the window. '
                 f'Silent: no sample for {_e(_age(snap["silent_after_s"]))}. The same data: '
                 f'<a href="fleet.json">fleet.json</a>.</footer>')
-    return _page("Drive fleet", snap["refresh_s"], header, f'<main><div>{"".join(body)}</div>{side}</main>')
+    return _page("Drive fleet", snap["refresh_s"], header, f'<main><div>{"".join(body)}</div>{"".join(side)}</main>')
 
 
 def render_error(message: str, historian: dict, refresh_s: float) -> str:
