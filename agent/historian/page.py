@@ -440,6 +440,7 @@ class _Server(ThreadingHTTPServer):
 def _handler(fleet: FleetPage) -> type[BaseHTTPRequestHandler]:
     class Handler(BaseHTTPRequestHandler):
         server_version = "pmsm-historian"
+        timeout = 30  # s: a client that stalls gives its thread back
 
         def do_GET(self):  # noqa: N802 (http.server's name)
             path = self.path.split("?", 1)[0]
