@@ -9,3 +9,17 @@ import pytest
 @pytest.fixture(scope="session")
 def full_form() -> bool:
     return os.environ.get("PMSM_SLOW", "").lower() == "full"
+
+
+@pytest.fixture(scope="module")
+def pg():
+    """A PostgreSQL server of its own for the test module (tests/pg_support.py); skips without one."""
+    from pg_support import PgServer, pg_bindir
+
+    bindir = pg_bindir()
+    if bindir is None:
+        pytest.skip("PostgreSQL's initdb is not installed (Debian: apt-get install postgresql); .ci/run installs it")
+    server = PgServer(bindir)
+    server.start()
+    yield server
+    server.remove()

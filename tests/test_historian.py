@@ -1,13 +1,10 @@
-"""The historian against a real PostgreSQL server (initdb/pg_ctl in a temp dir) and a real zenoh
-router on loopback; stand-in agents publish drive states exactly as ZenohSink does."""
+"""The historian against a real PostgreSQL server (the ``pg`` fixture: tests/pg_support.py) and a
+real zenoh router on loopback; stand-in agents publish drive states exactly as ZenohSink does."""
 
-import glob
 import json
-import os
 import re
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -28,23 +25,10 @@ from agent.historian.service import WAITING_FOR_DATABASE, Historian
 from agent.errors import InputError
 from protocols.base import QUALITY_CODES, STATE_CODES, DriveStatus
 from protocols.zenoh_sink import SCHEMA_VERSION, ZenohSink, zenoh_config
+from runtime_support import free_port
 
 ROOT = Path(__file__).resolve().parent.parent
 FAST = {"scouting/delay": 0}
-
-
-def _pg_bindir() -> Path | None:
-    found = shutil.which("initdb")
-    if found:
-        return Path(found).resolve().parent
-    versions = sorted(glob.glob("/usr/lib/postgresql/*/bin/initdb"), key=lambda p: int(p.split("/")[-3]))
-    return Path(versions[-1]).parent if versions else None
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def wait_for(pred, timeout=15.0, what="condition"):
@@ -55,58 +39,6 @@ def wait_for(pred, timeout=15.0, what="condition"):
             return value
         time.sleep(0.05)
     raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-
-
-class PgServer:
-    """A throw-away PostgreSQL cluster on a free loopback port (run as `postgres` when we are root)."""
-
-    def __init__(self, bindir: Path):
-        self.bindir, self.port = bindir, free_port()
-        self.base = Path(tempfile.mkdtemp(prefix="pmsm-pg-"))
-        self.data = self.base / "data"
-        self.as_postgres = os.geteuid() == 0
-        if self.as_postgres:
-            shutil.chown(self.base, "postgres", "postgres")
-        self._pg("initdb", "-D", str(self.data), "-A", "trust", "-U", "postgres", "-E", "UTF8", "--no-locale",
-                 "--no-sync")
-
-    def _pg(self, tool, *args):
-        cmd = [str(self.bindir / tool), *args]
-        runuser = shutil.which("runuser") or "/usr/sbin/runuser"  # util-linux; sbin may be off PATH
-        cmd = [runuser, "-u", "postgres", "--", *cmd] if self.as_postgres else cmd
-        r = subprocess.run(cmd, capture_output=True, text=True, timeout=60, cwd=self.base)  # a dir postgres may enter
-        assert r.returncode == 0, f"{tool}: {r.stdout}{r.stderr}"
-
-    def start(self):
-        self._pg("pg_ctl", "-D", str(self.data), "-l", str(self.base / "log"), "-w", "-o",
-                 f"-k {self.base} -p {self.port} -h 127.0.0.1 -c fsync=off -c full_page_writes=off", "start")
-
-    def stop(self):
-        self._pg("pg_ctl", "-D", str(self.data), "-m", "fast", "-w", "stop")
-
-    def dsn(self, dbname="postgres") -> str:
-        return f"host=127.0.0.1 port={self.port} user=postgres dbname={dbname}"
-
-    def create_database(self) -> str:
-        name = f"h_{uuid.uuid4().hex[:10]}"
-        with psycopg.connect(self.dsn(), autocommit=True) as conn:
-            conn.execute(f"CREATE DATABASE {name}")
-        return self.dsn(name)
-
-
-@pytest.fixture(scope="module")
-def pg():
-    bindir = _pg_bindir()
-    if bindir is None:
-        pytest.skip("PostgreSQL's initdb is not installed (Debian: apt-get install postgresql); .ci/run installs it")
-    server = PgServer(bindir)
-    server.start()
-    yield server
-    try:
-        server.stop()
-    except AssertionError:
-        pass  # already stopped by a failed test
-    shutil.rmtree(server.base, ignore_errors=True)
 
 
 @pytest.fixture(scope="module")

@@ -42,15 +42,6 @@ def _when(t: float | None) -> str:
     return "-" if t is None else datetime.fromtimestamp(t).astimezone().isoformat(sep=" ", timespec="seconds")
 
 
-def _reason_text(reason) -> str:
-    if isinstance(reason, dict):
-        parts = [f"{k}={reason[k]}" for k in ("path", "feature", "z", "evidence", "threshold") if k in reason]
-        if reason.get("freqs_hz"):
-            parts.append("lines_hz=" + ",".join(f"{f:g}" for f in reason["freqs_hz"][:2]))
-        return " ".join(parts)
-    return "" if reason is None else str(reason)
-
-
 def cmd_historian(args) -> None:
     from agent.historian.config import load_historian_config
 
@@ -117,7 +108,7 @@ def cmd_history(args) -> None:
         print(f"{len(alarms)} alarm(s) on {len(drives)} drive(s) from {_when(since)} to {_when(until)}")
         for a in alarms:
             name = "/".join(x for x in (a["site"], a["gateway"], a["drive"]) if x)
-            why = "; ".join(_reason_text(r) for r in a["reasons"][:3])
+            why = "; ".join(store.reason_text(r) for r in a["reasons"][:3])
             print(f"{name:<24} {a['state'].upper():<8} {_when(a['start'])} .. "
                   f"{_when(a['end']) if a['end'] is not None else 'ongoing'}" + (f"  {why}" if why else ""))
         return
@@ -129,7 +120,7 @@ def cmd_history(args) -> None:
         name = "/".join(x for x in (e["site"], e["gateway"], e["drive"]) if x)
         value = e["quality"] if e["kind"] == "quality" else e["state"]
         change = f"{e['from']} -> {value}" if e["from"] is not None else str(value)
-        why = _reason_text(e["reason"])
+        why = store.reason_text(e["reason"])
         print(f"{_when(e['t'])}  {name:<20} {e['kind']:<8} {change:<22}" + (f" {why}" if why else ""))
     if not events:
         print(f"no history of drive {args.drive} from {_when(since)} to {_when(until)}", file=sys.stderr)

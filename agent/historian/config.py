@@ -1,4 +1,5 @@
-"""The historian config (TOML): database, zenoh subscription, buffer, trend sampling, retention.
+"""The historian config (TOML): database, zenoh subscription, buffer, trend sampling, retention,
+the fleet page.
 
 Read and validated like the agent's config (:mod:`agent.runtime.config`, the same builder):
 unknown keys are rejected and every error names the key path, e.g. ``retention.trend_days:
@@ -9,7 +10,9 @@ else ``state`` beside the config file. See ``config/historian.toml`` for an anno
 
 from __future__ import annotations
 
+import ipaddress
 import os
+import re
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -70,6 +73,30 @@ class RetentionCfg:
     interval_s: float = _opt(3600.0, ge=1, le=7 * 86400)  #: how often the deletes run, s
 
 
+def _listen_host(v: str) -> str | None:
+    """An address to listen on: an IP address or a host name (of this machine)."""
+    try:
+        ipaddress.ip_address(v)
+        return None
+    except ValueError:
+        pass
+    return None if re.fullmatch(r"[A-Za-z0-9]([A-Za-z0-9.\-]*[A-Za-z0-9])?", v) else \
+        "an IP address or host name, e.g. '127.0.0.1' (the port is page.port)"
+
+
+@dataclass(frozen=True, kw_only=True)
+class PageCfg:
+    """The fleet page (HTML at ``/``, the same data at ``/fleet.json``), served by the historian."""
+
+    enabled: bool = _opt(False)
+    host: str = _opt("127.0.0.1", check=_listen_host)  #: loopback, or this server's address on the plant network
+    port: int = _opt(8470, ge=0, le=65535)  #: 0 picks a free port (the status shows the page's URL)
+    refresh_s: float = _opt(30.0, ge=2, le=3600)  #: the page reloads itself this often, s
+    window_h: float = _opt(24.0, gt=0, le=24 * 366)  #: the trend plots and the alarm list span this much, h
+    trend_points: int = _opt(96, ge=2, le=2000)  #: points per drive and family (the last row of each slice)
+    silent_after_s: float = _opt(300.0, gt=0, le=7 * 86400)  #: no sample for this long: the drive is marked silent
+
+
 @dataclass(frozen=True, kw_only=True)
 class HistorianConfig:
     schema_version: int = _opt()
@@ -80,6 +107,7 @@ class HistorianConfig:
     database: DatabaseCfg = _opt()
     zenoh: SubscriptionCfg = SubscriptionCfg()
     retention: RetentionCfg = RetentionCfg()
+    page: PageCfg = PageCfg()
     source: Path | None = field(default=None, metadata={"derived": True})  #: the config file
 
     @property

@@ -31,6 +31,7 @@ from agent.errors import InputError
 from agent.historian import ingest, store
 from agent.historian.buffer import Buffer
 from agent.historian.config import HistorianConfig
+from agent.historian.page import FleetPage
 from agent.runtime import sdnotify
 from protocols.streaming import Backoff
 from protocols.zenoh_sink import _at_shutdown, zenoh_config
@@ -41,6 +42,7 @@ STATUS_PERIOD_S = 1.0  #: the status file and systemd STATUS are refreshed this 
 WRITER_STALL_S = 15.0  #: a writer pass longer than this (beyond a connect timeout) stops the watchdog pings, s
 WAITING_FOR_DATABASE = "waiting for the database"
 WAITING_FOR_ROUTER = "waiting for a zenoh router"
+PAGE_RETRY_MAX_S = 60.0  #: a fleet page that cannot listen is retried, the wait doubling from 1 s up to this
 
 
 class RefusedBatch(Exception):
@@ -71,10 +73,16 @@ class Historian:
         self.retention: dict = {"last_run": None, "deleted": {}}
         self.last_error = ""
         self._rejected_keys: set[str] = set()
+        #: when each drive's last state sample arrived (a drive without evidence may write no row for hours)
+        self.heard: dict[ingest.Identity, float] = {}
+        self.page = FleetPage(cfg, self.status, self.heard.copy) if cfg.page.enabled else None  #: the fleet page
+        self.page_error = ""  #: why the page is not served (its address cannot be used)
 
     # --- lifecycle --------------------------------------------------------------------------
 
     def start(self) -> None:
+        """Start the writer thread, and serve the fleet page if enabled."""
+        self.open_page()
         self._writer_thread = threading.Thread(target=self._write_loop, name="historian-writer", daemon=True)
         self._writer_thread.start()
 
@@ -83,6 +91,8 @@ class Historian:
         Returns the rows left in the buffer (written at the next start)."""
         self.stop_event.set()
         self._wake.set()
+        if self.page is not None:
+            self.page.stop()
         session, self._session = self._session, None
         if session is not None:
             try:
@@ -112,6 +122,22 @@ class Historian:
         log.info("subscribed to %s (%s of %s)", z.key_expr, z.mode, ", ".join(z.connect or z.listen) or "config file")
         return True
 
+    def open_page(self) -> bool:
+        """Try once to serve the fleet page; ``True`` when it is served or not enabled. An address
+        that cannot be used is logged once and shown in the status (naming page.host and
+        page.port); the historian records without the page meanwhile."""
+        if self.page is None or self.page.url:
+            return True
+        try:
+            self.page.start()
+        except InputError as err:
+            if str(err) != self.page_error:
+                log.error("%s; recording goes on without the page, which is retried", err)
+            self.page_error = str(err)
+            return False
+        self.page_error = ""
+        return True
+
     # --- ingest (zenoh thread) --------------------------------------------------------------
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
@@ -132,16 +158,19 @@ class Historian:
             log.error("cannot buffer a sample on %s (%s): its rows are lost", key, err)
 
     def ingest(self, key: str, doc: dict, received_t: float | None = None) -> int:
-        """Turn one state sample into rows and buffer them (fsync'd); returns the rows buffered."""
+        """Turn one state sample into rows and buffer them (fsync'd); returns the rows buffered.
+        ``received_t`` is the time of receipt (default now)."""
+        received_t = time.time() if received_t is None else received_t
         with self._lock:
             self.counters["samples"] += 1
             ident = ingest.identity(key, doc, self.cfg.zenoh.prefix)
             rows, last = ingest.sample_rows(ident, doc, self._last.get(ident), trend_period_s=self.cfg.trend_period_s,
-                                            received_t=time.time() if received_t is None else received_t)
+                                            received_t=received_t)
             if rows:
                 self.buffer.append(rows, ident, last)
                 self.counters["rows_buffered"] += len(rows)
             self._last[ident] = last
+            self.heard[ident] = received_t
         if rows:
             self._wake.set()
         return len(rows)
@@ -234,7 +263,8 @@ class Historian:
         return {"historian": self.cfg.historian_id, "pid": os.getpid(), "t": time.time(),
                 "database": dict(self.database), "zenoh": self._zenoh_status(),
                 "buffered": self.buffer.count(), **self.counters, "last_error": self.last_error,
-                "retention": self.retention, "buffer": str(self.cfg.buffer_path)}
+                "retention": self.retention, "buffer": str(self.cfg.buffer_path),
+                "page": None if self.page is None else {"url": self.page.url or None, "error": self.page_error}}
 
     def _zenoh_status(self) -> dict:
         """The session's state with the routers and peers it is connected to now: a client whose
@@ -255,6 +285,7 @@ class Historian:
     def status_line(self) -> str:
         """One line for systemd's STATUS and the log."""
         waiting = [s["state"] for s in (self.database, self._zenoh_status()) if s["state"].startswith("waiting")]
+        waiting += ["the fleet page is not served (page.host, page.port)"] if self.page_error else []
         return "; ".join(waiting + [f"{self.counters['rows_written']} row(s) written, "
                                     f"{self.buffer.count()} buffered"])
 
@@ -277,6 +308,7 @@ class Historian:
         """Run until SIGTERM/SIGINT (or ``max_seconds``); returns the exit status."""
         z = self.cfg.zenoh
         zenoh_backoff = Backoff(z.retry_initial_s, z.retry_max_s)
+        page_backoff = Backoff(1.0, PAGE_RETRY_MAX_S)
         watchdog = sdnotify.Watchdog()
         self.start()
         sdnotify.ready(self.status_line())
@@ -286,6 +318,8 @@ class Historian:
                 if self._session is None and zenoh_backoff.due() and not self.open_zenoh():
                     wait = zenoh_backoff.failed()
                     log.warning("%s (%s); retrying in %.1f s", WAITING_FOR_ROUTER, self.zenoh_state["error"], wait)
+                if page_backoff.due() and not self.open_page():
+                    page_backoff.failed()
                 self.write_status()
                 sdnotify.status(self.status_line())
                 if time.monotonic() - self.heartbeat < self.cfg.database.connect_timeout_s + WRITER_STALL_S:

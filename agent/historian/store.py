@@ -203,6 +203,16 @@ def _event(row) -> dict:
                 prev_state if kind != "quality" else prev_quality), "reason": reason, "model": model}
 
 
+def reason_text(reason) -> str:
+    """One line for an alarm reason: its path, feature and numbers (and the first lines, Hz)."""
+    if isinstance(reason, dict):
+        parts = [f"{k}={reason[k]}" for k in ("path", "feature", "z", "evidence", "threshold") if k in reason]
+        if reason.get("freqs_hz"):
+            parts.append("lines_hz=" + ",".join(f"{f:g}" for f in reason["freqs_hz"][:2]))
+        return " ".join(parts)
+    return "" if reason is None else str(reason)
+
+
 _EVENT_SELECT = ("SELECT e.t, d.site, d.gateway, d.drive, e.kind, e.state, e.quality, e.prev_state, "
                  "e.prev_quality, e.reason, e.model FROM drive_event e JOIN drive d USING (drive_id)")
 
@@ -256,3 +266,47 @@ def plant_alarms(conn, since: float, until: float) -> list[dict]:
     for ep in kept:
         ep["duration_s"] = None if ep["end"] is None else round(ep["end"] - ep["start"], 3)
     return sorted(kept, key=lambda ep: (ep["start"], ep["site"], ep["gateway"], ep["drive"]))
+
+
+def fleet_now(conn) -> list[dict]:
+    """Every drive with its latest event (state, quality, reason, model), the time of its latest
+    state change and its latest trend row (evidence, fe, load); one query (index lookups per drive)."""
+    rows = conn.execute(
+        "SELECT d.site, d.gateway, d.drive, extract(epoch FROM e.t)::float8, e.state, e.quality, e.reason, e.model, "
+        "extract(epoch FROM s.t)::float8, extract(epoch FROM r.t)::float8, r.evidence, r.fe_hz, r.load_pct "
+        "FROM drive d "
+        "LEFT JOIN LATERAL (SELECT t, state, quality, reason, model FROM drive_event WHERE drive_id = d.drive_id "
+        "  ORDER BY t DESC, event_id DESC LIMIT 1) e ON true "
+        "LEFT JOIN LATERAL (SELECT t FROM drive_event WHERE drive_id = d.drive_id AND kind = 'state' "
+        "  ORDER BY t DESC, event_id DESC LIMIT 1) s ON true "
+        "LEFT JOIN LATERAL (SELECT t, evidence, fe_hz, load_pct FROM evidence_trend WHERE drive_id = d.drive_id "
+        "  ORDER BY t DESC LIMIT 1) r ON true").fetchall()
+    drives = []
+    for site, gateway, drive, event_t, state, quality, reason, model, state_t, trend_t, evidence, fe, load in rows:
+        heard = [t for t in (event_t, trend_t) if t is not None]
+        drives.append({"site": site, "gateway": gateway, "drive": drive,
+                       "state": STATE_NAMES.get(state, "unknown"), "state_code": state,
+                       "quality": QUALITY_NAMES.get(quality, "unknown"), "quality_code": quality,
+                       "state_since": state_t, "last_t": max(heard) if heard else None,
+                       "reason": reason if state else None, "model": model or "",
+                       "fe_hz": fe, "load_pct": load, "evidence": evidence or {}})
+    return drives
+
+
+def trend_samples(conn, since: float, until: float, points: int) -> dict[tuple[str, str, str], list]:
+    """The evidence trend of every drive in [since, until] (Unix s), at most ``points`` rows per
+    drive: the last row in each of ``points`` equal slices of the period. One query, one index
+    lookup per drive and slice, so its cost does not grow with the trend's density.
+
+    Returns ``{(site, gateway, drive): [(t, {family: evidence}), ...]}``, oldest first."""
+    rows = conn.execute(
+        "SELECT d.site, d.gateway, d.drive, extract(epoch FROM p.t)::float8, p.evidence "
+        "FROM drive d CROSS JOIN generate_series(1, %(points)s) AS k "
+        "CROSS JOIN LATERAL (SELECT t, evidence FROM evidence_trend WHERE drive_id = d.drive_id "
+        "  AND t > to_timestamp(%(since)s + (k - 1) * %(step)s) AND t <= to_timestamp(%(since)s + k * %(step)s) "
+        "  ORDER BY t DESC LIMIT 1) p ORDER BY d.drive_id, p.t",
+        {"since": since, "step": (until - since) / points, "points": points}).fetchall()
+    trends: dict[tuple[str, str, str], list] = {}
+    for site, gateway, drive, t, evidence in rows:
+        trends.setdefault((site, gateway, drive), []).append((t, evidence))
+    return trends
