@@ -206,10 +206,17 @@ def _write_inventory(path: Path, view: dict) -> None:
     os.replace(tmp, path)
 
 
-def cmd_fleet_status(args) -> None:
+def _check_key(key: str, option: str) -> None:
     from protocols.zenoh_sink import check_key
 
-    check_key(args.prefix, "--prefix")
+    try:
+        check_key(key, option)
+    except ValueError as err:
+        raise InputError(str(err)) from None
+
+
+def cmd_fleet_status(args) -> None:
+    _check_key(args.prefix, "--prefix")
     path = _inventory_path(args)
     inventory = _read_inventory(path)
     session = _session(args.connect, args.zenoh_config)
@@ -242,9 +249,8 @@ def cmd_fleet_status(args) -> None:
 
 def cmd_fleet_command(args) -> None:
     from agent.runtime.commands import load_keys, sign
-    from protocols.zenoh_sink import check_key
 
-    check_key(args.drive, "--drive")
+    _check_key(args.drive, "--drive")
     keys = load_keys(args.key_file)
     if args.role not in keys:
         raise InputError(f"--role {args.role!r}: no key for it in {args.key_file}")

@@ -173,6 +173,7 @@ class Service:
         self.gate = None  #: checks signed zenoh commands (agent.runtime.commands)
         self.remote_commands: deque = deque()  #: accepted zenoh commands, applied by the DSP thread
         self.command_counts = {"accepted": 0, "refused": 0, "refused_by_reason": {}}
+        self._command_lock = threading.Lock()  #: command_counts and _refusal_journaled (zenoh threads)
         self._refusal_journaled: dict[str, tuple[float, int]] = {}  #: reason -> (last journal time, suppressed)
         if cfg.zenoh.enabled:
             from protocols.zenoh_sink import Providers, sink_from_config
@@ -230,8 +231,9 @@ class Service:
         return {"drive": drive, "model": name, "freqs_hz": freqs.tolist(), "amplitude": amp.tolist()}
 
     def _health(self) -> dict:
-        return {"site": self.cfg.zenoh.site, "commands": {**self.command_counts,
-                "refused_by_reason": dict(self.command_counts["refused_by_reason"])}}
+        with self._command_lock:
+            commands = {**self.command_counts, "refused_by_reason": dict(self.command_counts["refused_by_reason"])}
+        return {"site": self.cfg.zenoh.site, "commands": commands}
 
     def _zenoh_link(self, event: str, detail: dict) -> None:
         """The zenoh sink's link events (client mode): journalled as kind ``zenoh``."""
@@ -246,20 +248,21 @@ class Service:
         try:
             cmd = self.gate.check(drive, target, payload)
         except CommandRefused as err:
-            counts = self.command_counts
-            counts["refused"] += 1
-            counts["refused_by_reason"][err.reason] = counts["refused_by_reason"].get(err.reason, 0) + 1
             now = time.monotonic()
-            last, held = self._refusal_journaled.get(err.reason, (-1e18, 0))
-            if now - last >= self.cfg.journal.error_holdoff_s:
-                self._refusal_journaled[err.reason] = (now, 0)
+            with self._command_lock:
+                counts = self.command_counts
+                counts["refused"] += 1
+                counts["refused_by_reason"][err.reason] = counts["refused_by_reason"].get(err.reason, 0) + 1
+                last, held = self._refusal_journaled.get(err.reason, (-1e18, 0))
+                journal = now - last >= self.cfg.journal.error_holdoff_s
+                self._refusal_journaled[err.reason] = (now, 0) if journal else (last, held + 1)
+            if journal:
                 self.journal.record("command", drive, detail={"accepted": False, "reason": err.reason,
                                                               "error": str(err), "held_back": held})
-            else:
-                self._refusal_journaled[err.reason] = (last, held + 1)
-            log.warning("%s: zenoh command refused: %s", drive, err)
+                log.warning("%s: zenoh command refused: %s", drive, err)
             raise
-        self.command_counts["accepted"] += 1
+        with self._command_lock:
+            self.command_counts["accepted"] += 1
         self.journal.record("command", drive, detail={"accepted": True, "command": cmd.kind, "role": cmd.role,
                                                       "by": cmd.by, "t": cmd.t})
         self.remote_commands.append(cmd)
