@@ -568,3 +568,12 @@ def test_the_router_unit_verifies(tmp_path):
     unit.write_text(re.sub(r"^ExecStart=\S+", f"ExecStart={sys.executable}", text, flags=re.M))
     r = subprocess.run(["systemd-analyze", "verify", str(unit)], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and not r.stderr.strip(), r.stderr
+
+
+def test_fleet_without_a_router_is_one_line_and_exit_2(tmp_path, capsys):
+    from agent.cli import main
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    assert main(["fleet", "status", "--connect", endpoint, "--inventory", str(tmp_path / "inv.json")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"pmsm-agent fleet: error: --connect {endpoint}: no zenoh router answers")
