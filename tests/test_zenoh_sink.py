@@ -279,8 +279,14 @@ def test_drive_token_follows_the_input(link):
         got.wait(lambda k, p, kind: kind == zenoh.SampleKind.PUT)
         sink.publish(status(quality="stale"))
         got.wait(lambda k, p, kind: kind == zenoh.SampleKind.DELETE)
+        assert sink.fleet()["drives"]["d1"]["alive"] is False
+        n = len(got.items)
         sink.publish(status(quality="good"))
-        got.wait(lambda k, p, kind: kind == zenoh.SampleKind.PUT and len(got.items) == 3)
+        with got.cond:  # a PUT after the DELETE
+            assert got.cond.wait_for(lambda: any(i[2] == zenoh.SampleKind.PUT for i in got.items[n:]), 5.0), got.items
+        deadline = time.monotonic() + 2.0  # the sender sets it once declare_token has returned
+        while not sink.fleet()["drives"]["d1"]["alive"] and time.monotonic() < deadline:
+            time.sleep(0.01)
         assert sink.fleet()["drives"]["d1"]["alive"] is True
     sub.undeclare()
 
