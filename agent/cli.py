@@ -28,7 +28,7 @@ log = logging.getLogger("pmsm-agent")
 #: what the gateway install leaves out (pyproject's ``workbench`` extra)
 WORKBENCH_MODULES = ("scipy", "numba", "matplotlib", "llvmlite")
 EXTENSIONS: tuple[str, ...] = ("agent.runtime.cli", "agent.runtime.commissioning", "agent.workbench.cli",
-                               "agent.historian.cli")
+                               "agent.historian.cli", "agent.runtime.plant")
 
 
 # --- helpers --------------------------------------------------------------------------------

@@ -236,6 +236,17 @@ class PlcModbusServer(OpenClose):
                 self._loop.call_soon(self._clear_command, reg.address("RELEARN", c.index))
         return out
 
+    def acknowledge(self, drive: str) -> None:
+        """Acknowledge ``drive``'s current alarm as the PLC's ACK does (a command from elsewhere,
+        e.g. a signed zenoh command); ``KeyError`` for an unknown drive. Thread-safe."""
+        i = self._index[drive]
+
+        def ack():
+            cur = self._current[i]
+            self._ack_level[i] = cur[0][_OFF["STATE"]] if cur is not None else 0
+            self._spawn(self._write_drive(i))
+        self._loop.call_soon(ack)
+
     def flush(self, timeout: float = 1.0) -> bool:
         """Wait until every update published so far is in the registers (tests, shutdown)."""
         if not self._loop.running:

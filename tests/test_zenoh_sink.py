@@ -16,7 +16,7 @@ import pytest
 import zenoh
 
 from protocols.base import DriveStatus, Sink
-from protocols.zenoh_sink import Providers, ZenohSink, zenoh_config
+from protocols.zenoh_sink import AgentIdInUse, Providers, ZenohSink, zenoh_config
 
 ROOT = Path(__file__).resolve().parent.parent
 PREFIX = "test/pmsm"
@@ -265,3 +265,84 @@ def test_peer_restart_zenoh_reconnects_and_publish_never_waits():
         *_, t_seen = got2.wait(lambda k, p, _: json.loads(p)["state"] == "warning", timeout=10.0)  # periodic repeat
         print(f"\nreconnected: latest state seen {t_seen - t_back:.2f} s after the peer came back")
     scada.close()
+
+
+def test_drive_token_follows_the_input(link):
+    """``<prefix>/<drive>/alive`` is live while the drive's input is (its quality not stale)."""
+    port, scada = link
+    got = Collector()
+    sub = scada.liveliness().declare_subscriber(f"{PREFIX}/d1/alive", got, history=True)
+    with make_sink(port) as sink:
+        time.sleep(0.2)
+        assert not got.items  # no status yet: no token
+        sink.publish(status(quality="no_model"))
+        got.wait(lambda k, p, kind: kind == zenoh.SampleKind.PUT)
+        sink.publish(status(quality="stale"))
+        got.wait(lambda k, p, kind: kind == zenoh.SampleKind.DELETE)
+        assert sink.fleet()["drives"]["d1"]["alive"] is False
+        n = len(got.items)
+        sink.publish(status(quality="good"))
+        with got.cond:  # a PUT after the DELETE
+            assert got.cond.wait_for(lambda: any(i[2] == zenoh.SampleKind.PUT for i in got.items[n:]), 5.0), got.items
+        deadline = time.monotonic() + 2.0  # the sender sets it once declare_token has returned
+        while not sink.fleet()["drives"]["d1"]["alive"] and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert sink.fleet()["drives"]["d1"]["alive"] is True
+    sub.undeclare()
+
+
+def _router(port):
+    return zenoh.open(zenoh_config("router", [f"tcp/127.0.0.1:{port}"], [], FAST))
+
+
+def test_a_client_opens_in_the_background_once_a_router_answers():
+    """Client mode: no router at open() is no error; the sink retries with back-off, then
+    declares everything and reports each loss and return of its router."""
+    port = free_port()
+    events = []
+    providers = Providers(link=lambda event, detail: events.append(event))
+    cfg = zenoh_config("client", [], [f"tcp/127.0.0.1:{port}"], FAST)
+    sink = ZenohSink(cfg, PREFIX, "edge1", drives=["d1"], providers=providers, period_s=0.1,
+                     retry_initial_s=0.1, retry_max_s=0.4)
+    t0 = time.perf_counter()
+    sink.open()
+    assert time.perf_counter() - t0 < 1.0 and events == ["unreachable"] and not sink.connected
+    sink.publish(status())  # monitoring goes on without a router
+    router = _router(port)
+    try:
+        scada = zenoh.open(zenoh_config("client", [], [f"tcp/127.0.0.1:{port}"], FAST))
+        got = Collector()
+        scada.declare_subscriber(f"{PREFIX}/d1/state", got)
+        got.wait(lambda k, p, _: json.loads(p)["state"] == "normal", timeout=10.0)
+        assert events == ["unreachable", "connected"] and sink.connected
+        scada.close()
+        router.close()
+        deadline = time.monotonic() + 5
+        while events[-1] != "lost" and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert events[-1] == "lost" and sink.stats.link_losses == 1
+    finally:
+        router.close()
+        sink.close()
+
+
+def test_a_second_agent_with_the_same_id_is_refused():
+    port = free_port()
+    router = _router(port)
+    lease = {**FAST, "transport/link/tx/lease": 1000}
+    cfg = lambda: zenoh_config("client", [], [f"tcp/127.0.0.1:{port}"], lease)  # noqa: E731
+    try:
+        with ZenohSink(cfg(), PREFIX, "edge1"):
+            second = ZenohSink(cfg(), PREFIX, "edge1")
+            t0 = time.perf_counter()
+            with pytest.raises(AgentIdInUse, match=f"agent_id 'edge1' is already live .*{PREFIX}/agent/edge1/alive"):
+                second.open()
+            assert 1.0 <= time.perf_counter() - t0 < 5.0  # it waited one lease for a dead predecessor's token
+            other = ZenohSink(cfg(), PREFIX, "edge2")  # another id is welcome
+            other.open()
+            other.close()
+        again = ZenohSink(cfg(), PREFIX, "edge1")  # the first one has gone: its id is free
+        again.open()
+        again.close()
+    finally:
+        router.close()

@@ -187,17 +187,44 @@ class ModbusServerCfg:
 
 @dataclass(frozen=True, kw_only=True)
 class ZenohCfg:
-    """Zenoh session; multicast scouting and gossip are always off."""
+    """Zenoh session; multicast scouting and gossip are always off.
+
+    Key space: without ``site``, ``prefix`` is the agent's own prefix (default ``pmsm/<host name>``)
+    and each drive publishes on ``<prefix>/<drive>/state``. On a plant's router network set
+    ``site``: ``prefix`` is then the plant's root (default ``pmsm``) and the agent's own prefix
+    becomes ``<prefix>/<site>/<agent_id>``, so its drives publish on
+    ``<root>/<site>/<agent_id>/<drive>/state`` (docs/architecture.md "Plant"). After loading,
+    ``prefix`` always holds the agent's own prefix and ``plant_prefix`` the root.
+    """
 
     enabled: bool = True
     mode: str = _opt("peer", choices=("peer", "client", "router"))
     listen: tuple[str, ...] = _opt((), check=_endpoint)
     connect: tuple[str, ...] = _opt((), check=_endpoint)
-    prefix: str = _opt("", check=lambda v: None if v == "" else _key_expr(v))  #: default pmsm/<host name>
+    prefix: str = _opt("", check=lambda v: None if v == "" else _key_expr(v))  #: see the class docstring
+    site: str = _opt("", check=lambda v: None if v == "" else _key_chunk(v))  #: the plant site (one key chunk)
     config_file: Path | None = _opt(None)  #: JSON5 zenoh config read first
     inline: dict = _opt({})  #: extra zenoh keys, ``{"transport/link/tx/lease" = 3000}``
     period_s: float = _opt(1.0, gt=0, le=3600)  #: state republish period, s
     diagnostics_period_s: float = _opt(5.0, gt=0, le=86400)
+    retry_initial_s: float = _opt(0.5, gt=0, le=600)  #: client mode, no router answers: first wait, s
+    retry_max_s: float = _opt(10.0, gt=0, le=3600)  #: ... doubling up to this, s
+    plant_prefix: str = field(default="", metadata={"derived": True})  #: the plant's root (see above)
+
+
+@dataclass(frozen=True, kw_only=True)
+class CommandsCfg:
+    """Commands (ACK, RELEARN) over zenoh, signed per role (:mod:`agent.runtime.commands`).
+
+    Off unless enabled; ``key_file`` is a TOML file ``[keys] <role> = "<hex secret>"`` (not
+    world-readable). ``acknowledge``/``relearn``: the roles allowed to send each command.
+    """
+
+    enabled: bool = False
+    key_file: Path | None = _opt(None)
+    acknowledge: tuple[str, ...] = _opt(("operator", "engineer"), check=_key_chunk)
+    relearn: tuple[str, ...] = _opt(("engineer",), check=_key_chunk)
+    max_skew_s: float = _opt(30.0, gt=0, le=3600)  #: a command's time ``t`` may differ this much from ours, s
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -252,6 +279,7 @@ class Config:
     pipeline: PipelineCfg = PipelineCfg()
     modbus_server: ModbusServerCfg = ModbusServerCfg()
     zenoh: ZenohCfg = ZenohCfg()
+    commands: CommandsCfg = CommandsCfg()
     library: LibraryCfg = LibraryCfg()
     journal: JournalCfg = JournalCfg()
     source: Path | None = field(default=None, metadata={"derived": True})  #: the config file
@@ -378,6 +406,7 @@ def _validate(cfg: Config) -> Config:
     if p.hop_s > p.window_s:
         raise _KeyError("pipeline.hop_s", f"must be <= pipeline.window_s ({p.window_s}), got {p.hop_s}")
     _validate_zenoh(cfg.zenoh)
+    _validate_commands(cfg.commands)
     mb = buffer_mb(replace(cfg, drives=tuple(drives)))
     if mb > MAX_BUFFER_MB:
         raise _KeyError("pipeline.window_s", f"the signal buffers of {len(drives)} drive(s) would take {mb:.0f} MB "
@@ -386,9 +415,15 @@ def _validate(cfg: Config) -> Config:
     if state_dir.exists() and not state_dir.is_dir():
         raise _KeyError("state_dir", f"{state_dir} exists and is not a directory")
     library = replace(cfg.library, path=cfg.library.path or state_dir / "library")
-    return replace(cfg, drives=tuple(drives), state_dir=state_dir, library=library,
-                   agent_id=cfg.agent_id or _default_agent_id(),
-                   zenoh=replace(cfg.zenoh, prefix=cfg.zenoh.prefix or f"pmsm/{_default_agent_id()}"))
+    agent_id = cfg.agent_id or _default_agent_id()
+    z = cfg.zenoh
+    if z.site:  # a plant: the prefix names the root, the agent's own prefix is <root>/<site>/<agent_id>
+        root = z.prefix or "pmsm"
+        z = replace(z, plant_prefix=root, prefix=f"{root}/{z.site}/{agent_id}")
+    else:
+        z = replace(z, prefix=z.prefix or f"pmsm/{_default_agent_id()}")
+        z = replace(z, plant_prefix=z.prefix)
+    return replace(cfg, drives=tuple(drives), state_dir=state_dir, library=library, agent_id=agent_id, zenoh=z)
 
 
 def _load_profile(d: DriveCfg, kp: str):
@@ -435,6 +470,13 @@ def _validate_zenoh(z: ZenohCfg) -> None:
         raise _KeyError("zenoh.config_file", f"no such file: {z.config_file}")
     if not z.enabled:
         return
+    if z.mode == "client" and not z.connect and z.config_file is None:
+        raise _KeyError("zenoh.connect", "a client needs at least one router endpoint, e.g. ['tcp/router-1:7447']")
+    if z.mode == "client" and z.listen:
+        raise _KeyError("zenoh.listen", "only a peer or router listens; a client connects to routers")
+    if z.retry_max_s < z.retry_initial_s:
+        raise _KeyError("zenoh.retry_max_s", f"must be >= zenoh.retry_initial_s ({z.retry_initial_s}), "
+                        f"got {z.retry_max_s}")
     from protocols.zenoh_sink import zenoh_config  # builds the real zenoh.Config: bad keys fail here
 
     try:
@@ -443,6 +485,23 @@ def _validate_zenoh(z: ZenohCfg) -> None:
         raise _KeyError("zenoh.inline", str(err)) from None
     except Exception as err:  # zenoh.ZError from a bad JSON5 file
         raise _KeyError("zenoh.config_file", f"not a valid zenoh config: {err}") from None
+
+
+def _validate_commands(c: CommandsCfg) -> None:
+    if not c.enabled:
+        return
+    if c.key_file is None:
+        raise _KeyError("commands.key_file", "missing: signed commands need a key file ([keys] role = \"hex\")")
+    from agent.runtime.commands import load_keys
+
+    try:
+        keys = load_keys(c.key_file)
+    except InputError as err:
+        raise _KeyError("commands.key_file", str(err)) from None
+    for command in ("acknowledge", "relearn"):
+        for i, role in enumerate(getattr(c, command)):
+            if role not in keys:
+                raise _KeyError(f"commands.{command}[{i}]", f"role {role!r} has no key in {c.key_file}")
 
 
 # --- entry points -------------------------------------------------------------------------------

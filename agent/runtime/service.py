@@ -21,6 +21,7 @@ import queue
 import signal
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -107,6 +108,13 @@ def build_source(drive, rate_hz: float, span_s: float | None = None) -> Source:
     raise ValueError(f"unknown source kind {s.kind!r}")
 
 
+def _agent_id_in_use(err: Exception) -> bool:
+    """Did the zenoh sink refuse because another gateway with this agent_id is live?"""
+    from protocols.zenoh_sink import AgentIdInUse
+
+    return isinstance(err, AgentIdInUse)
+
+
 def pipeline_config(cfg: Config) -> PipelineConfig:
     p = cfg.pipeline
     alarm = AlarmConfig(stretch_s=p.stretch_s, settle_s=p.settle_s, false_alarms_per_month=p.false_alarms_per_month,
@@ -162,11 +170,22 @@ class Service:
 
             self.plc = PlcModbusServer(list(self.drives), host=cfg.modbus_server.host, port=cfg.modbus_server.port)
             self.sinks.append(self.plc)
+        self.gate = None  #: checks signed zenoh commands (agent.runtime.commands)
+        self.remote_commands: deque = deque()  #: accepted zenoh commands, applied by the DSP thread
+        self.command_counts = {"accepted": 0, "refused": 0, "refused_by_reason": {}}
+        self._command_lock = threading.Lock()  #: command_counts and _refusal_journaled (zenoh threads)
+        self._refusal_journaled: dict[str, tuple[float, int]] = {}  #: reason -> (last journal time, suppressed)
         if cfg.zenoh.enabled:
             from protocols.zenoh_sink import Providers, sink_from_config
 
+            if cfg.commands.enabled:
+                from agent.runtime.commands import CommandGate
+
+                self.gate = CommandGate.from_config(cfg.commands)
             providers = Providers(model=self._q_model, thresholds=self._q_thresholds, spectrum=self._q_spectrum,
-                                  events=self.journal.provider(), diagnostics=self._diagnostics)
+                                  events=self.journal.provider(), diagnostics=self._diagnostics,
+                                  health=self._health, link=self._zenoh_link,
+                                  command=self._zenoh_command if self.gate is not None else None)
             self.sinks.append(sink_from_config(cfg.zenoh, cfg.agent_id, list(self.drives), providers))
 
     # -- events and queries ---------------------------------------------------------------------
@@ -210,6 +229,44 @@ class Service:
             raise KeyError(f"{drive}: no spectrum yet")
         name, freqs, amp = spectrum
         return {"drive": drive, "model": name, "freqs_hz": freqs.tolist(), "amplitude": amp.tolist()}
+
+    def _health(self) -> dict:
+        with self._command_lock:
+            commands = {**self.command_counts, "refused_by_reason": dict(self.command_counts["refused_by_reason"])}
+        return {"site": self.cfg.zenoh.site, "commands": commands}
+
+    def _zenoh_link(self, event: str, detail: dict) -> None:
+        """The zenoh sink's link events (client mode): journalled as kind ``zenoh``."""
+        self.journal.record("zenoh", detail={"event": event, **detail})
+
+    def _zenoh_command(self, drive: str, target: str, payload: str) -> dict:
+        """A signed command from a zenoh query (a zenoh thread): checked, queued for the DSP
+        thread, journalled; a refusal is counted, journalled (the same reason at most once per
+        ``journal.error_holdoff_s``, with the number held back) and raised to the sender."""
+        from agent.runtime.commands import CommandRefused
+
+        try:
+            cmd = self.gate.check(drive, target, payload)
+        except CommandRefused as err:
+            now = time.monotonic()
+            with self._command_lock:
+                counts = self.command_counts
+                counts["refused"] += 1
+                counts["refused_by_reason"][err.reason] = counts["refused_by_reason"].get(err.reason, 0) + 1
+                last, held = self._refusal_journaled.get(err.reason, (-1e18, 0))
+                journal = now - last >= self.cfg.journal.error_holdoff_s
+                self._refusal_journaled[err.reason] = (now, 0) if journal else (last, held + 1)
+            if journal:
+                self.journal.record("command", drive, detail={"accepted": False, "reason": err.reason,
+                                                              "error": str(err), "held_back": held})
+                log.warning("%s: zenoh command refused: %s", drive, err)
+            raise
+        with self._command_lock:
+            self.command_counts["accepted"] += 1
+        self.journal.record("command", drive, detail={"accepted": True, "command": cmd.kind, "role": cmd.role,
+                                                      "by": cmd.by, "t": cmd.t})
+        self.remote_commands.append(cmd)
+        return {"accepted": True, "command": cmd.kind, "drive": drive, "role": cmd.role}
 
     def _diagnostics(self, drive: str) -> dict:
         d = self.drives[drive]
@@ -308,14 +365,23 @@ class Service:
         return not any(name.startswith(f"{d.name}_") for name in self.library.baselines)
 
     def _commands(self) -> None:
-        if self.plc is None:
-            return
-        for cmd in self.plc.commands():
+        """Apply the PLC's commands and the accepted zenoh commands (ACK of a zenoh command goes
+        to the PLC server, which keeps ALARM_ACKED, as the PLC's own ACK does)."""
+        for cmd in self.plc.commands() if self.plc is not None else ():
             if cmd.kind == "relearn" and cmd.drive in self.drives:
-                mon = self.drives[cmd.drive].monitor
-                st = mon.status
-                mon.start_learning(f"{cmd.drive}_{st.fe_hz:.0f}hz_{st.load_pct:.0f}pct")
-                self.journal.record("learning", cmd.drive, detail={"event": "relearn requested by the PLC"})
+                self._relearn(cmd.drive, "relearn requested by the PLC")
+        while self.remote_commands:
+            cmd = self.remote_commands.popleft()
+            if cmd.kind == "relearn":
+                self._relearn(cmd.drive, f"relearn requested over zenoh by {cmd.by or cmd.role} ({cmd.role})")
+            elif cmd.kind == "acknowledge" and self.plc is not None:
+                self.plc.acknowledge(cmd.drive)
+
+    def _relearn(self, drive: str, why: str) -> None:
+        mon = self.drives[drive].monitor
+        st = mon.status
+        mon.start_learning(f"{drive}_{st.fe_hz:.0f}hz_{st.load_pct:.0f}pct")
+        self.journal.record("learning", drive, detail={"event": why})
 
     def run(self, max_seconds: float | None = None) -> int:
         """Open everything, run until stopped (or ``max_seconds``), close everything."""
@@ -327,6 +393,9 @@ class Service:
                 try:
                     sink.open()
                 except Exception as err:  # a busy port, an endpoint zenoh cannot listen on: the config's to fix
+                    if getattr(sink, "name", "") == "zenoh" and _agent_id_in_use(err):
+                        self.journal.record("error", detail={"event": "agent_id in use", "error": str(err)})
+                        raise InputError(str(err), source=str(self.cfg.source)) from err
                     key = {"modbus-plc": "modbus_server.port", "zenoh": "zenoh.listen"}.get(getattr(sink, "name", ""))
                     if key is None:
                         raise
