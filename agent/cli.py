@@ -159,6 +159,11 @@ def cmd_identify(args) -> None:
     if findings:
         base.model.meta["accepted_fault_evidence"] = findings
     phys = base.physical
+    radius = base.model.spectral_radius(2 * np.pi * base.operating_point["fe_hz"])
+    if not radius < 1.0:  # a model whose free run diverges describes no machine, however well it predicts one step
+        phys["problems"].append(f"the identified model's free run is unstable at fe {base.operating_point['fe_hz']:.2f} Hz "
+                                f"(largest eigenvalue {radius:.6f}): its inductances and resistance are not the "
+                                f"machine's; records with a load step, or nameplate.ld_h and nameplate.lq_h, pin them")
     if phys["problems"] and not args.force:
         raise InputError(f"nonphysical parameters, model not written: {'; '.join(phys['problems'])} "
                          f"(check the records and the profile's [nameplate]; --force writes it anyway, marked)")
