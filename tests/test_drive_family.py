@@ -386,3 +386,14 @@ def test_records_are_valid_contract_records(tmp_path):
         assert np.array_equal(back.i_abc, rec.i_abc) and back.meta["drive_seed"] == 18
         assert (back.theta_e is None) == (sampling == "async")
         assert json.loads(back.meta["effects"])["current_offset"]["offset_a"]
+
+
+def test_every_effect_draws_on_many_drives():
+    """Each effect's draw succeeds on 60 drawn drives (the saturation draw once asked brentq for a
+    target its cross term alone already exceeded)."""
+    from bench.family import EFFECTS, draw_drive, draw_effect
+
+    for seed in range(20000, 20060):
+        drive = draw_drive(seed)
+        for effect in EFFECTS:
+            assert draw_effect(drive, effect, seed), (seed, effect)

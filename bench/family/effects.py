@@ -135,13 +135,14 @@ def _draw_saturation(drive: Drive, rng) -> dict:
     target = rng.uniform(0.05, 0.30)
     draw = {"n": rng.uniform(1.5, 4.0), "psi_d_drop_at_rated": rng.uniform(0.0, 0.06),
             "ld_rise_at_rated": rng.uniform(0.0, 0.12), "alpha": 0.0}
-    for _ in range(8):  # shrink the cross and d terms until the energy is convex over 2.5 rated current
-        def drop(alpha):
+    for _ in range(8):  # shrink the cross and d terms until the target is reachable and the energy is
+        def drop(alpha):  # convex over 2.5 rated current
             return lq_drop_at_rated(drive, saturation_map(drive, {**draw, "alpha": alpha})) - target
 
-        draw["alpha"] = scipy.optimize.brentq(drop, 0.0, 100.0)
-        if is_convex(saturation_map(drive, draw), 2.5 * drive.i_rated_peak):
-            return draw
+        if drop(0.0) < 0.0 < drop(100.0):
+            draw["alpha"] = scipy.optimize.brentq(drop, 0.0, 100.0)
+            if is_convex(saturation_map(drive, draw), 2.5 * drive.i_rated_peak):
+                return draw
         draw["psi_d_drop_at_rated"] *= 0.5
         draw["ld_rise_at_rated"] *= 0.5
     raise RuntimeError(f"no convex flux map for drive {drive.seed}")
