@@ -72,8 +72,10 @@ from protocols.streaming import put_drop_oldest
 
 #: Version of the JSON payloads (the ``schema`` field). 2: adds ``reason``, ``evidence``, ``settling``
 #: and ``learn_progress_pct`` (the alarm logic, docs/method.md "Alarms") and the field itself;
-#: a payload without ``schema`` is version 1.
-SCHEMA_VERSION = 2
+#: a payload without ``schema`` is version 1. 3: ``load_pct`` is the shaft torque over the rated
+#: torque, as a drive shows its load (it was the input power over the rated power; docs/method.md,
+#: "Load is torque over rated torque").
+SCHEMA_VERSION = 3
 log = logging.getLogger(__name__)
 
 QUERY_TOPICS = ("model", "spectrum", "thresholds", "events")

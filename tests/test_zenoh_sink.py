@@ -93,7 +93,7 @@ def test_state_on_change_and_periodically(link):
         doc = json.loads(payload)
         assert {"state", "quality", "spectrum_state", "cluster_state", "fe_hz", "load_pct", "t"} <= set(doc)
         assert (doc["state"], doc["quality"], doc["state_code"], doc["quality_code"]) == ("normal", "good", 0, 0)
-        assert doc["agent"] == "edge1" and doc["seq"] == 1 and doc["schema"] == 2
+        assert doc["agent"] == "edge1" and doc["seq"] == 1 and doc["schema"] == 3
         got.wait(lambda k, p, _: k.endswith("/state") and json.loads(p)["seq"] >= 3)  # periodic repeats
         sink.publish(status("warning", spectrum_state="warning", peaks=[{"freq_hz": 87.5}]))
         _, payload, *_ = got.wait(lambda k, p, _: k.endswith("/state") and json.loads(p)["state"] == "warning")
