@@ -27,6 +27,7 @@ class Param:
     lower: float = -np.inf  #: physical lower bound (e.g. 0: the effect has a sign)
     upper: float = np.inf  #: physical upper bound
     scale: str | Callable[[dict], float] = ""  #: base value (key or function of them) the bounds multiply
+    split: bool = False  #: one signed part of a signed quantity (lower bound 0): sitting at 0 is no physical limit
 
     def bounds(self, base: dict) -> tuple[float, float]:
         """(lower, upper) in the parameter's unit for the drive's ``base`` values (unbounded where
