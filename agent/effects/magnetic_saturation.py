@@ -13,9 +13,10 @@ to 10 % of psi_m at rated current). Reported: lq_drop_at_rated = 1 - psi_q(0, I_
 (headline), the d-flux changes at rated current of the cross and the d self term (Wb), lambda_H.
 
 What records pin: lambda_q needs several loads (at one it is L_q); a pure psi_d change (c at i_d = 0,
-kappa_d) is a back-EMF change at one load, which each record's own psi_m takes: c is pinned only
-where i_d varies with the load (MTPA, field weakening: 2 c i_d i_q on d) and kappa_d only by
-records at several d currents.
+kappa_d) is a back-EMF change, which each record's own psi_m takes (the columns leave its level
+within a record to it, so that the pair cannot carry psi_m beyond its range): c is pinned only where
+i_d varies with the load (MTPA, field weakening: 2 c i_d i_q on d) or by a load step within a
+record, and kappa_d only by records whose d current moves.
 """
 
 import numpy as np
@@ -32,6 +33,9 @@ def columns(sig):
     flux = np.stack((np.stack((0 * i_q, -i_q ** 3 / I_REF ** 2)),
                      np.stack((i_q ** 2 / I_REF, 2 * i_d * i_q / I_REF)),
                      np.stack((i_d ** 2 / I_REF, 0 * i_d))))
+    # a d-flux change's level within a record is a back-EMF change the record's own psi_m takes (the
+    # refit fits one per record, within its physical range): the columns keep what varies within it
+    flux[1:, 0] -= flux[1:, 0].mean(axis=1, keepdims=True)
     rate = np.gradient(flux, sig.ts, axis=2) if sig.n > 1 else np.zeros_like(flux)
     # the effect's voltage is minus what the model misses: -(d psi_d/dt - w psi_q, d psi_q/dt + w psi_d)
     return -np.stack((rate[:, 0] - w * flux[:, 1], rate[:, 1] + w * flux[:, 0]), axis=1)
@@ -58,9 +62,9 @@ EFFECT = Effect(
     kind="voltage",
     params=(Param("lambda", "H", "lambda_q = L_q s (I_REF/I_rated)^2, the cubic q-flux coefficient", 5e-3,
                   0.0, 0.5, lambda b: b["Lq"] * (I_REF / b["i_rated"]) ** 2),
-            Param("c_cross", "H", "cross-saturation coefficient c (d flux per i_q^2 / I_REF)", 5e-3,
+            Param("c_cross", "H", "cross-saturation coefficient c (d flux per i_q^2 / I_REF)", 1e-3,
                   -0.1, 0.1, _d_flux_bound),
-            Param("kappa_d", "H", "d self-saturation coefficient (d flux per i_d^2 / I_REF)", 5e-3,
+            Param("kappa_d", "H", "d self-saturation coefficient (d flux per i_d^2 / I_REF)", 1e-3,
                   -0.1, 0.1, _d_flux_bound)),
     columns=columns, report=report,
     signature="d-axis residual that grows with the cube of the q current: visible across loads, "

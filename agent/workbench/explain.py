@@ -168,8 +168,9 @@ def reported(eid: str, r: Refit, ctx: dict) -> dict:
         return {"params": values}
     return {"params": {k: None if k in loose else v for k, v in values.items()},
             "unpinned_params": {k: values[k] for k in loose},
-            "note": f"{', '.join(loose)} not separable from these records (reported: "
-                    f"{', '.join(k for k in values if pinned[k])}); revealed by {eff.reveals}"}
+            "note": f"{', '.join(loose)} not separable from these records ("
+                    + (f"reported: {', '.join(k for k in values if pinned[k])}" if len(loose) < len(values) else
+                       "its response is pinned, no figure of it is") + f"); revealed by {eff.reveals}"}
 
 
 def unidentified_note(eid: str, how: dict) -> str:
