@@ -68,6 +68,7 @@ class Effect:
     abc_orders: tuple[int, ...] = ()  #: harmonics of fe in the phase residual (0 = DC)
     reveals: str = ""  #: which records make it identifiable
     torque: str = "none"  #: what it adds to the torque regression (eq. 15)
+    raw: bool = False  #: its columns carry the measured samples' white noise (not only the smoothed current)
     _cache: list = field(default_factory=lambda: [None, None], compare=False, repr=False)
 
     def __post_init__(self):

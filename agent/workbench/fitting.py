@@ -300,6 +300,7 @@ def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None) -
         for axis, base in enumerate(BASE_TERMS["speed"]):
             terms = base + tuple(t for d_q in terms_v for t in d_q[axis])
             n = len(terms)
+            raw = np.array([True] * len(base) + [e.raw for e in effs for _ in e.params])
             m = n + n_out + n_rec
             g, h, yy, cnt, gn = np.zeros((m, m)), np.zeros(m), 0.0, 0, np.zeros((m, m))
             for j, (s, (noisy, quiet)) in enumerate(zip(segs, noise)):
@@ -314,6 +315,7 @@ def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None) -
                 y = s.i_dq[axis, 1:]
                 xn = (zoh2_regressors(axis, len(base), terms_v, noisy)
                       - zoh2_regressors(axis, len(base), terms_v, quiet))[:-1]  # columns are affine in v, i
+                xn[:, ~raw] = 0.0  # columns from the smoothed current carry no white noise
                 g += x.T @ x
                 gn[:n, :n] += xn.T @ xn
                 g[:n, :n] -= xn.T @ xn
@@ -344,7 +346,9 @@ def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None) -
                 rel["Rs_d"] = float(np.sqrt(max(cov[0, 0], 0.0)) / b)
             cols = slice(len(base), n)
             est.append(theta[cols] / b)
-            var.append(_block_info(g, cols, s2, d_theta) * b ** 2)
+            # the residual holds at least the current channel's noise at k+1 (the compensation can push it below)
+            s2_floor = float(np.mean([p.noise_var[1] for p in preps]))
+            var.append(_block_info(g, cols, max(s2, s2_floor), d_theta) * b ** 2)
             new_coef.append((float(theta[0]), float(theta[1])))  # i_x and w * i_other: the state matrix's row
         coef = new_coef
     layout, j = {}, 0
@@ -713,7 +717,9 @@ def pinned_keys(effect, values: np.ndarray, info: dict | None, ctx: dict) -> dic
     out = {}
     for key, g in zip(keys, grads):
         size = float(np.linalg.norm(g))  # the figure's change over a typical-size step along its gradient
-        if not np.isfinite(size) or size == 0.0:
+        if size == 0.0:  # not a function of the fitted parameters: read off the records (the dead time's knee)
+            out[key] = True
+        elif not np.isfinite(size):
             out[key] = False
         elif "cov" in info:
             cov = np.asarray(info["cov"]) / np.outer(typ, typ)
