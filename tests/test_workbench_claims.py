@@ -149,17 +149,19 @@ def test_an_effect_beyond_its_sensor_class_is_at_bound_not_significant(base80, e
 
 
 def test_second_hidden_effect_is_claimed_given_the_first(base80):
-    """Offset and delay hidden together at 60 and 100 % load: the delay is significant on its own;
-    the offset's share varies with the load against a control that still lacks the delay, so it
-    is judged again with the delay accepted (forward selection) and is significant then."""
+    """Offset and delay hidden together at 60 and 100 % load: both are claimed. The offset's share
+    varies with the load against a control that still lacks the delay; where it misses the level on
+    its own it is judged again with the delay accepted (forward selection) and is significant then
+    (the voltage path's one-step estimate now reads the delay with the offset unmodelled, and both
+    are claimed on their own)."""
     eff = {"current_offset": 0.1, "voltage_delay": 1.0}
     recs = [simulate(GEAR, "healthy", (60.0, 100.0)[j % 2], 1.0, seed=300 + j, effects=eff) for j in range(4)]
     doc = ex.explain(base80, prepare(recs, GEAR))
     sig = {c["effect"]: c for c in doc["candidates"] if c["significant"]}
     assert set(sig) == set(eff), doc["candidates"][:3]
-    second = next(c for c in sig.values() if "given" in c)
-    assert second["given"] == [e for e in sig if e != second["effect"]]
-    assert second["p_value_given"] < ex.ALPHA and second["explained_fraction_given"] >= ex.MIN_EXPLAINED
+    for second in (c for c in sig.values() if "given" in c):
+        assert second["given"] == [e for e in sig if e != second["effect"]]
+        assert second["p_value_given"] < ex.ALPHA and second["explained_fraction_given"] >= ex.MIN_EXPLAINED
 
 
 def test_effective_size_against_its_limits():
