@@ -74,6 +74,7 @@ PRECISION = 0.1  #: a one-step effect is identifiable when its standard error is
 SHARE_FLOOR = 0.1  #: a free-run effect is identifiable when the base parameters leave this share of its response
 VISIBLE_FLOOR = 5e-4  #: and that unabsorbed part is at least this NRMSE
 PRIOR_NRMSE = 1.5e-4  #: a free-run effect's typical-size step costs a response of this NRMSE (a prior at zero)
+HOLD = 1e6  #: weight that holds at zero a combination of an effect's parameters the free run does not see
 NOISE_LEVEL_REL = 0.05  #: relative uncertainty of the channels' noise variance read off the zero sequence
 DECIMATE = 4  #: the fit's error is read at every DECIMATE-th sample (the free run is simulated at all)
 _SCALE = np.array([1.0, 1e-2, 1.0])  # R_s,q ohm, L_qx H, R_s,d ohm
@@ -241,6 +242,7 @@ class OneStep:
         typ = np.concatenate([typical[e] for e in order]) if order else np.zeros(0)
         post = info + np.diag(1.0 / typ ** 2)
         cov = np.linalg.inv(post) if order else post
+        cov = cov * self.disagreement(k_d, k_q)
         lower = np.concatenate([bounds[e][0] for e in order]) if order else typ
         upper = np.concatenate([bounds[e][1] for e in order]) if order else typ
         joint = bounded_lstsq(post, rhs, lower, upper)
@@ -250,6 +252,23 @@ class OneStep:
             values[eid], se[eid] = joint[cut], np.sqrt(np.diag(cov)[cut])
             self.cov[eid] = cov[cut, cut]
         return values, se
+
+
+    def disagreement(self, k_d: float = 1.0, k_q: float = 1.0) -> float:
+        """The axes' disagreement as a variance factor (the Birge ratio, at least 1): chi^2 of each
+        axis's estimate against the joint one in its information, over the constraints the second
+        axis adds. The same parameters seen through d and q differ beyond their noise where the
+        regression misses something (the speed ripple's slow columns, read at 25 Hz, disagreed by
+        4 sd on the rig), and then its standard errors are too small by that much."""
+        est_d, info_d, est_q, info_q = self.axes
+        if est_d.size == 0:
+            return 1.0
+        a, b = info_d / k_d ** 2, info_q / k_q ** 2
+        joint = np.linalg.pinv(a + b, rcond=1e-10) @ (a @ est_d * k_d + b @ est_q * k_q)
+        chi2 = sum(float((e * k - joint) @ m @ (e * k - joint)) for e, m, k in ((est_d, a, k_d), (est_q, b, k_q)))
+        rank = lambda m: int(np.linalg.matrix_rank(m, tol=1e-10 * max(np.abs(m).max(), 1e-300)))  # noqa: E731
+        dof = rank(a) + rank(b) - rank(a + b)
+        return max(1.0, chi2 / dof) if dof > 0 else 1.0
 
 
 def _block_info(g: np.ndarray, cols: slice, s2: float, shift: np.ndarray) -> np.ndarray:
@@ -591,8 +610,10 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
     ridge = np.concatenate([np.zeros(n_rec)] + [(PRIOR_NRMSE * i_norm / typical_sizes([e])[e.id]) ** 2
                                                 for e in solved])
 
+    prior_g = np.diag(ridge)
+
     def solve(z):
-        g, h, parts = np.diag(ridge), np.zeros(n_lin), []
+        g, h, parts = prior_g.copy(), np.zeros(n_lin), []
         with np.errstate(over="ignore", invalid="ignore"):
             for y, s in responses(z, solved):
                 s2 = s.reshape(n_lin, -1)
@@ -624,16 +645,7 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
     alpha, _ = solve(sol.x)
     if alpha is None:  # the free run diverges even at the best point found
         alpha, sol.cost = np.full(n_lin, np.nan), np.inf
-    values, j = dict(step.values), n_rec
-    for e in solved:
-        values[e.id] = alpha[j:j + len(e.params)]
-        j += len(e.params)
-    values = {e.id: values[e.id] for e in every}
-    found = (np.exp(sol.x) * _SCALE[:n_z]).tolist()
-    phys = {**dict(zip(NONLINEAR, found)), "Rs_d": found[2] if free_d else found[0] if tied else rs_d, "Ld": ld, "Lq": lq,
-            "psi_m": float(np.mean(alpha[:n_rec]))}
-    model = base_model(form, ts, fe_hz, phys, effect_ids, values)
-    judged, info = {}, {}
+    judged, info, kept = {}, {}, {}
     for e in every:
         if e.id in step.values:  # read by the one-step regression, pinned to a fraction of a typical size
             judged[e.id] = (True, {"stage": "one-step", "relative_se": _one_step_rel(step, e)})
@@ -647,11 +659,37 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
         y0 = output(sol.x)
         sens = [(output(sol.x + 1e-4 * e) - y0) / 1e-4 for e in np.eye(n_z)]
         s_all = np.concatenate([s.reshape(s.shape[0], -1) for _, s in responses(sol.x, solved)], axis=1)
-        left = float(np.linalg.norm(residual(sol.x))) / i_norm  # what the refit leaves on the fit segments (NRMSE)
-        for eid, (ok, how, inf) in _unabsorbed(np.column_stack(sens + list(s_all[:n_rec])), s_all, solved, i_norm,
-                                               n_rec).items():
-            judged[eid], info[eid] = (ok, how), {**inf, "left": left}
-    return Refit(tuple(effect_ids), model, phys, values, fit_cost(model, preps), judged,
+        kept = _unabsorbed(np.column_stack(sens + list(s_all[:n_rec])), s_all, solved, i_norm, n_rec)
+        # a combination of an effect's parameters whose typical-size step leaves less than
+        # VISIBLE_FLOOR to the base parameters is held at zero: the records do not see it, and a
+        # free one goes where the rest of the model's error pulls it (on the rig, saturation's cross
+        # term to its bound)
+        pen, j = np.zeros((n_lin, n_lin)), n_rec
+        for e in solved:
+            val, vec = np.linalg.eigh(kept[e.id][2]["kept"])
+            unseen = vec[:, np.sqrt(np.maximum(val, 0.0)) < VISIBLE_FLOOR * i_norm] / typical_sizes([e])[e.id][:, None]
+            pen[j:j + len(e.params), j:j + len(e.params)] = HOLD * (VISIBLE_FLOOR * i_norm) ** 2 * unseen @ unseen.T
+            j += len(e.params)
+        if pen.any():
+            prior_g += pen
+            again, _ = solve(sol.x)
+            alpha = again if again is not None else alpha
+    values, j = dict(step.values), n_rec
+    for e in solved:
+        values[e.id] = alpha[j:j + len(e.params)]
+        j += len(e.params)
+    values = {e.id: values[e.id] for e in every}
+    found = (np.exp(sol.x) * _SCALE[:n_z]).tolist()
+    phys = {**dict(zip(NONLINEAR, found)), "Rs_d": found[2] if free_d else found[0] if tied else rs_d, "Ld": ld, "Lq": lq,
+            "psi_m": float(np.mean(alpha[:n_rec]))}
+    model = base_model(form, ts, fe_hz, phys, effect_ids, values)
+    cost = fit_cost(model, preps)
+    # what the refit leaves on the fit segments beyond the channels' noise, as an NRMSE
+    i_fit = sum(float(np.sum(p.sig.i_dq[:, p.fit_slice] ** 2)) for p in preps)
+    left = float(np.sqrt(max(cost, 0.0) / max(i_fit, 1e-300))) if np.isfinite(cost) else np.inf
+    for eid, (ok, how, inf) in kept.items():
+        judged[eid], info[eid] = (ok, how), {**inf, "left": left}
+    return Refit(tuple(effect_ids), model, phys, values, cost, judged,
                  {e: at_bound(values[e], bounds[e], get_effect(e)) for e in values}, info)
 
 
@@ -701,7 +739,8 @@ def pinned_keys(effect, values: np.ndarray, info: dict | None, ctx: dict) -> dic
     parameters) is at most ``PRECISION`` of its change over a typical-size step; by the free run
     when the parameter step that changes it by that much with the least response left to the base
     parameters keeps ``SHARE_FLOOR`` of its response, and a part at least ``VISIBLE_FLOOR`` of the
-    current and at least what the refit leaves on its fit segments (a figure whose typical change
+    current and at least what the refit leaves on its fit segments beyond the channels' noise
+    (``left``, an NRMSE: a figure whose typical change
     moves the output less than the remaining error is set by that error, model errors included:
     motulator's delay at a load step read 1.39 samples with an advance of -0.43, its sum 0.96).
     ``info``: :attr:`Refit.info`'s; without it (the model's own effect) every figure counts as pinned."""
