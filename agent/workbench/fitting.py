@@ -558,6 +558,11 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
     # one_step sets the effects it pins down; those it cannot (smooth closed-loop data: little
     # sample-to-sample excitation) go to the free run with the rest, which judges them itself
     precise = {e.id for e in every if e.id in step.se and _one_step_rel(step, e) <= PRECISION}
+    # an effect of which the one-step pins some parameters only goes to the free run with those held
+    # at the one-step's values (the voltage path's delay read sample to sample, its advance not)
+    held = {e.id: (step.se[e.id] / typical_sizes([e])[e.id] <= PRECISION, step.values[e.id])
+            for e in every if e.id in step.se and e.id not in precise}
+    held = {k: v for k, v in held.items() if v[0].any()}
     step.values = {k: v for k, v in step.values.items() if k in precise}
     solved = [e for e in every if e.id not in step.values]
     data = []
@@ -610,10 +615,17 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
     ridge = np.concatenate([np.zeros(n_rec)] + [(PRIOR_NRMSE * i_norm / typical_sizes([e])[e.id]) ** 2
                                                 for e in solved])
 
-    prior_g = np.diag(ridge)
+    prior_g, prior_h, j = np.diag(ridge), np.zeros(n_lin), n_rec
+    for e in solved:
+        if e.id in held:
+            mask, value = held[e.id]
+            w = np.where(mask, HOLD * (VISIBLE_FLOOR * i_norm / typical_sizes([e])[e.id]) ** 2, 0.0)
+            prior_g[j:j + w.size, j:j + w.size] += np.diag(w)
+            prior_h[j:j + w.size] += w * value
+        j += len(e.params)
 
     def solve(z):
-        g, h, parts = prior_g.copy(), np.zeros(n_lin), []
+        g, h, parts = prior_g.copy(), prior_h.copy(), []
         with np.errstate(over="ignore", invalid="ignore"):
             for y, s in responses(z, solved):
                 s2 = s.reshape(n_lin, -1)
@@ -666,6 +678,9 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
         # term to its bound)
         pen, j = np.zeros((n_lin, n_lin)), n_rec
         for e in solved:
+            if e.id in held:  # the one-step's values hold it already
+                j += len(e.params)
+                continue
             val, vec = np.linalg.eigh(kept[e.id][2]["kept"])
             unseen = vec[:, np.sqrt(np.maximum(val, 0.0)) < VISIBLE_FLOOR * i_norm] / typical_sizes([e])[e.id][:, None]
             pen[j:j + len(e.params), j:j + len(e.params)] = HOLD * (VISIBLE_FLOOR * i_norm) ** 2 * unseen @ unseen.T
@@ -689,6 +704,10 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
     left = float(np.sqrt(max(cost, 0.0) / max(i_fit, 1e-300))) if np.isfinite(cost) else np.inf
     for eid, (ok, how, inf) in kept.items():
         judged[eid], info[eid] = (ok, how), {**inf, "left": left}
+        if eid in held:  # its figures pinned by the one-step count too
+            judged[eid] = (True, {**how, "one_step_pinned": [p.name for p, m in zip(get_effect(eid).params, held[eid][0])
+                                                             if m]})
+            info[eid]["cov"] = step.cov[eid]
     return Refit(tuple(effect_ids), model, phys, values, cost, judged,
                  {e: at_bound(values[e], bounds[e], get_effect(e)) for e in values}, info)
 
@@ -762,13 +781,16 @@ def pinned_keys(effect, values: np.ndarray, info: dict | None, ctx: dict) -> dic
         size = float(np.linalg.norm(g))  # the figure's change over a typical-size step along its gradient
         if size == 0.0:  # not a function of the fitted parameters: read off the records (the dead time's knee)
             out[key] = True
-        elif not np.isfinite(size):
+            continue
+        if not np.isfinite(size):
             out[key] = False
-        elif "cov" in info:
+            continue
+        out[key] = False
+        if "cov" in info:  # the one-step regression's standard error
             cov = np.asarray(info["cov"]) / np.outer(typ, typ)
-            var = float(g @ np.where(np.isfinite(cov), cov, 1e300) @ g) if np.any(g) else np.inf
+            var = float(g @ np.where(np.isfinite(cov), cov, 1e300) @ g)
             out[key] = bool(np.sqrt(max(var, 0.0)) <= PRECISION * size)
-        else:
+        if "kept" in info and not out[key]:  # the free run's unabsorbed response
             kept, whole = info["kept"], info["whole"]
             m = kept + 1e-9 * max(np.trace(kept), 1e-300) * np.eye(kept.shape[0])
             u = np.linalg.solve(m, g)
