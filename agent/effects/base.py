@@ -28,6 +28,7 @@ class Param:
     upper: float = np.inf  #: physical upper bound
     scale: str | Callable[[dict], float] = ""  #: base value (key or function of them) the bounds multiply
     split: bool = False  #: one signed part of a signed quantity (lower bound 0): sitting at 0 is no physical limit
+    euler_shift: float = 0.0  #: what the one-step regression's eq. 6 voltage column leaves to this parameter
 
     def bounds(self, base: dict) -> tuple[float, float]:
         """(lower, upper) in the parameter's unit for the drive's ``base`` values (unbounded where

@@ -50,7 +50,7 @@ EFFECT = Effect(
             Param("d_lead", "samples", "lead of the reported voltage before the applied one", 1.0, 0.0, 1.5,
                   split=True),
             Param("advance", "samples", "rotation of the applied dq voltage against the reported, in omega_e T_s",
-                  1.0, -1.0, 1.0)),
+                  1.0, -1.0, 1.0, euler_shift=0.5)),
     columns=columns, report=report,
     signature="residual correlated with the voltage increments v(k+1) - v(k) and v(k) - v(k-1) "
               "(cross-correlation with the input at lag +-1); at constant speed mostly a rotation of the "
