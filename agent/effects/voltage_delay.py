@@ -50,7 +50,7 @@ EFFECT = Effect(
             Param("d_lead", "samples", "lead of the reported voltage before the applied one", 1.0, 0.0, 1.5,
                   split=True),
             Param("advance", "samples", "rotation of the applied dq voltage against the reported, in omega_e T_s",
-                  1.0, -1.0, 1.0, euler_shift=0.5)),
+                  1.0, -1.0, 1.0)),
     columns=columns, report=report,
     signature="residual correlated with the voltage increments v(k+1) - v(k) and v(k) - v(k-1) "
               "(cross-correlation with the input at lag +-1); at constant speed mostly a rotation of the "
@@ -59,5 +59,5 @@ EFFECT = Effect(
             "sample to sample and tells it from the hold); with a smooth voltage at one constant speed only "
             "the rotation omega_e (d + a) T_s is seen, partly absorbed into the lumped parameters: speed or "
             "load steps of 10 % or more reveal it then",
-    raw=True,
+    raw=True, turns_voltage=True,
 )

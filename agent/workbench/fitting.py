@@ -310,6 +310,12 @@ def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None) -
     terms_v = [e.terms() for e in effs]
     n_rec, n_out = len(preps), sum(len(e.params) for e in outs)
     segs = [p.sig.slice(p.start, p.split) for p in preps]
+    # eq. 6's voltage column leaves out the zoh2 input's turn of a held voltage by -omega_e T_s / 2
+    # ((I + A)/2 B u): a column that turns the voltage would take it (the voltage path's advance, read
+    # half a sample low), so with one the regression's voltage columns are the zoh2 model's; without
+    # one, eq. 6's, whose base values the free run has been judged with (zoh2 columns there moved
+    # them, and motulator's speed-ripple refit lost its 2x)
+    columns = zoh2_regressors if any(e.turns_voltage for e in effs) else plain_regressors
     noise = [noise_signals(s) for s in segs]
     coef = [(1.0, 0.0), (1.0, 0.0)]  # the state matrix's rows (own, cross x omega) behind the output columns
     for _ in range(2 if outs else 1):
@@ -320,14 +326,11 @@ def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None) -
             terms = base + tuple(t for d_q in terms_v for t in d_q[axis])
             n = len(terms)
             raw = np.array([True] * len(base) + [e.raw for e in effs for _ in e.params])
-            # eq. 6's voltage column leaves out the zoh2 input's turn by -omega_e T_s / 2 ((I + A)/2 B u),
-            # which a column that turns the voltage takes: its parameter reads that much low here
-            euler_shift = np.array([p.euler_shift for e in effs for p in e.params])
             m = n + n_out + n_rec
             g, h, yy, cnt, gn = np.zeros((m, m)), np.zeros(m), 0.0, 0, np.zeros((m, m))
             for j, (s, (noisy, quiet)) in enumerate(zip(segs, noise)):
                 x = np.zeros((s.n - 1, m))
-                x[:, :n] = regressors(terms, s)[:-1]
+                x[:, :n] = columns(axis, len(base), terms_v, s)[:-1]
                 if outs:  # y = x + o: o(k+1) - A(k) o(k), A(k) from the previous pass (first: I)
                     o = np.concatenate([e.cols(s)[:, axis] for e in outs])
                     o_other = np.concatenate([e.cols(s)[:, 1 - axis] for e in outs])
@@ -335,7 +338,8 @@ def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None) -
                     x[:, n:n + n_out] = (o[:, 1:] - a_own * o[:, :-1] - a_cross * s.omega_e[:-1] * o_other[:, :-1]).T
                 x[:, n + n_out + j] = 1.0
                 y = s.i_dq[axis, 1:]
-                xn = (regressors(terms, noisy) - regressors(terms, quiet))[:-1]  # columns are affine in v, i
+                xn = (columns(axis, len(base), terms_v, noisy)
+                      - columns(axis, len(base), terms_v, quiet))[:-1]  # columns are affine in v, i
                 xn[:, ~raw] = 0.0  # columns from the smoothed current carry no white noise
                 g += x.T @ x
                 gn[:n, :n] += xn.T @ xn
@@ -366,7 +370,7 @@ def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None) -
                 rs_d = (1 - theta[0] - 0.5 * (w0 * ts) ** 2) / b
                 rel["Rs_d"] = float(np.sqrt(max(cov[0, 0], 0.0)) / b)
             cols = slice(len(base), n)
-            est.append(theta[cols] / b + euler_shift)
+            est.append(theta[cols] / b)
             # the residual holds at least the current channel's noise at k+1 (the compensation can push it below)
             s2_floor = float(np.mean([p.noise_var[1] for p in preps]))
             var.append(_block_info(g, cols, max(s2, s2_floor), d_theta) * b ** 2)
@@ -386,6 +390,27 @@ def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None) -
 def typical_sizes(effs) -> dict:
     """effect id -> (m,) its parameters' typical sizes (:attr:`agent.effects.base.Param.typical`)."""
     return {e.id: np.array([p.typical for p in e.params]) for e in effs}
+
+
+V_COLUMN = 2  #: index of the voltage column in both axes' ``speed`` base terms
+
+
+def plain_regressors(axis: int, n_base: int, terms_v: list, s: Signals) -> np.ndarray:
+    """(N, n) one-step regressors of ``axis``: the ``speed`` form's base terms (eq. 6), then the
+    voltage effects' ``terms_v``."""
+    return regressors(BASE_TERMS["speed"][axis] + tuple(t for d_q in terms_v for t in d_q[axis]), s)
+
+
+def zoh2_regressors(axis: int, n_base: int, terms_v: list, s: Signals) -> np.ndarray:
+    """:func:`plain_regressors` with every voltage column as the zoh2 model applies it, (I + A)/2 B u,
+    whose cross-coupling turns u by -omega_e T_s / 2 (d: u_d + omega_e T_s/2 u_q, q: u_q -
+    omega_e T_s/2 u_d; the R_s T_s / 2L scale is left to L)."""
+    x = plain_regressors(axis, n_base, terms_v, s)
+    volt = [V_COLUMN] + list(range(n_base, x.shape[1]))
+    other = BASE_TERMS["speed"][1 - axis]
+    cross = regressors((other[V_COLUMN],) + tuple(t for d_q in terms_v for t in d_q[1 - axis]), s)
+    x[:, volt] += ((0.5, -0.5)[axis] * s.omega_e * s.ts)[:, None] * cross
+    return x
 
 
 def noise_signals(s: Signals) -> tuple[Signals, Signals]:
