@@ -128,7 +128,8 @@ def test_5th_and_7th_harmonics_are_named_measured_and_removed(base80, case):
     assert top["effect"] == "flux_harmonics" and top["significant"] and not top["at_bound"], doc["candidates"][:2]
     scale = max(h.get("psi_5", 0.0), h.get("psi_7", 0.0))
     for k in ("5", "7"):
-        assert top["params"][f"psi_{k}_Wb"] == pytest.approx(h.get(f"psi_{k}", 0.0), abs=0.2 * (h.get(f"psi_{k}") or scale))
+        true = h.get(f"psi_{k}", 0.0)
+        assert top["params"][f"psi_{k}_Wb"] == pytest.approx(true, abs=0.2 * (true or scale))
     r, fig = add_effects(base80, preps, ["flux_harmonics"])
     floor = heldout(r.model, preps)["noise_floor"]["total"]
     assert fig["nrmse_after"] <= 0.1 * fig["nrmse_control"] and fig["nrmse_after"] <= 2 * floor, (fig, floor)

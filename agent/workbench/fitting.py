@@ -301,8 +301,8 @@ def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None) -
     squares (errors in variables); its share of X^T X follows from the noise levels
     (:func:`noise_signals`) and is subtracted (bias-compensated least squares). An effect parameter
     p enters as (T_s/L_x) p; each axis gives an estimate, combined by information
-    (:meth:`OneStep.rescaled`). Effects whose columns barely vary within a record (less than ``WITHIN_MIN`` of their energy: a level
-    per record, like saturation) are left to the free run, as are output effects (y = x + o), which
+    (:meth:`OneStep.rescaled`). Effects whose columns barely vary within a record (less than
+    ``WITHIN_MIN`` of their energy: a level per record, like saturation) are left to the free run, as are output effects (y = x + o), which
     enter here as o(k+1) - A(k) o(k), A(k) the state matrix of a first pass (which takes A = I), so
     that they do not bias the rest."""
     effs = [e for e in map(get_effect, effect_ids) if e.kind == "voltage"]
@@ -715,8 +715,8 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
     for eid, (ok, how, inf) in kept.items():
         judged[eid], info[eid] = (ok, how), {**inf, "left": left}
         if eid in held:  # its figures pinned by the one-step count too
-            judged[eid] = (True, {**how, "one_step_pinned": [p.name for p, m in zip(get_effect(eid).params, held[eid][0])
-                                                             if m]})
+            pinned = [p.name for p, m in zip(get_effect(eid).params, held[eid][0]) if m]
+            judged[eid] = (True, {**how, "one_step_pinned": pinned})
             info[eid]["cov"] = step.cov[eid]
     return Refit(tuple(effect_ids), model, phys, values, cost, judged,
                  {e: at_bound(values[e], bounds[e], get_effect(e)) for e in values}, info)
