@@ -302,7 +302,8 @@ def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None) -
     (:func:`noise_signals`) and is subtracted (bias-compensated least squares). An effect parameter
     p enters as (T_s/L_x) p; each axis gives an estimate, combined by information
     (:meth:`OneStep.rescaled`). Effects whose columns barely vary within a record (less than
-    ``WITHIN_MIN`` of their energy: a level per record, like saturation) are left to the free run, as are output effects (y = x + o), which
+    ``WITHIN_MIN`` of their energy: a level per record, like saturation) are left to the free run,
+    as are output effects (y = x + o), which
     enter here as o(k+1) - A(k) o(k), A(k) the state matrix of a first pass (which takes A = I), so
     that they do not bias the rest."""
     effs = [e for e in map(get_effect, effect_ids) if e.kind == "voltage"]
