@@ -139,13 +139,13 @@ def test_constrained_fit_keeps_the_effect_terms():
     w = 2 * np.pi * 100
     extra_d, extra_q = model_terms(["flux_harmonics"])
     d, q = lumped_params("lumped", TS, -0.5, LD, LQ, PSI, w)  # negative R: implausible
-    model = DQModel("lumped", TS, np.append(d, [1e-3, 2e-3]), np.append(q, [3e-3, 4e-3]), extra_d, extra_q,
-                    fe_hz=100.0)
-    fit = FitResult(model, np.zeros(2), np.eye(5) * 1e6, np.eye(6) * 1e6)
+    eff_d, eff_q = [1e-3, 2e-3, 5e-4, 6e-4], [3e-3, 4e-3, 7e-4, 8e-4]  # the 5th and the 7th, cos and sin parts
+    model = DQModel("lumped", TS, np.append(d, eff_d), np.append(q, eff_q), extra_d, extra_q, fe_hz=100.0)
+    fit = FitResult(model, np.zeros(2), np.eye(7) * 1e6, np.eye(8) * 1e6)
     constrain(fit, PSI)
     assert all(fit.model.physical()[k] > 0 for k in ("Rs_d", "Rs_q", "Ld", "Lq"))
-    np.testing.assert_array_equal(fit.model.theta_d[3:], [1e-3, 2e-3])
-    np.testing.assert_array_equal(fit.model.theta_q[4:], [3e-3, 4e-3])
+    np.testing.assert_array_equal(fit.model.theta_d[3:], eff_d)
+    np.testing.assert_array_equal(fit.model.theta_q[4:], eff_q)
 
 
 def test_torque_regression_recovers_b_gt():

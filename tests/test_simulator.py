@@ -181,6 +181,15 @@ def test_effect_flux_harmonics_6th_in_dq():
     assert line(dq(fh)[0][0], 6 * FE) > 10 * line(dq(base)[0][0], 6 * FE)
 
 
+def test_effect_voltage_lead_is_the_next_sample():
+    """voltage_delay -1: the voltage channel records the interval after the current's (a drive
+    reporting its command before it applies it); the plant is the same."""
+    lead = simulate(REF, seconds=0.2, seed=2, effects={"voltage_delay": -1.0})
+    plain = simulate(REF, seconds=0.2, seed=2)
+    np.testing.assert_array_equal(lead.i_abc, plain.i_abc)
+    np.testing.assert_allclose(lead.v_abc[:, :-1], plain.v_abc[:, 1:], atol=1e-9)  # the command: no channel noise
+
+
 def test_effect_current_offset_fe_in_dq():
     base = simulate(GEAR, seconds=1.0, seed=2, encoder=True)
     off = simulate(GEAR, seconds=1.0, seed=2, encoder=True, effects={"current_offset": 0.05})
@@ -249,8 +258,12 @@ def test_bad_names_raise_input_error():
         simulate(GEAR, seconds=0.01, effects={"warp_drive": 1.0})
     with pytest.raises(InputError, match="chain_missing_tooth"):
         simulate(CHAIN, "gear_no_lubricant", seconds=0.01)
-    with pytest.raises(InputError):
-        simulate(GEAR, seconds=0.01, effects={"voltage_delay": -1.0})
+    with pytest.raises(InputError):  # a lead (negative delay) of at most 4 samples
+        simulate(GEAR, seconds=0.01, effects={"voltage_delay": -5.0})
+    with pytest.raises(InputError, match="psi_5"):
+        simulate(GEAR, seconds=0.01, effects={"flux_harmonics": {"psi_6": 0.01}})
+    with pytest.raises(InputError, match="amplitudes"):
+        simulate(GEAR, seconds=0.01, effects={"flux_harmonics": {"psi_5": -0.01}})
     with pytest.raises(InputError):
         simulate(GEAR, load_pct=-5.0, seconds=0.01)
     assert set(CONDITIONS) == {"healthy", "gear_slight_wear", "gear_severe_wear", "gear_no_lubricant",

@@ -90,7 +90,8 @@ def test_output_terms_simulate_and_predict_exactly():
 def test_model_terms_concatenates_in_order():
     d, q = model_terms(["current_offset", "flux_harmonics"])
     assert [t.name for t in d] == ["current_offset.o_alpha", "current_offset.o_beta",
-                                   "flux_harmonics.psi_6c", "flux_harmonics.psi_6s"]
+                                   "flux_harmonics.psi_5c", "flux_harmonics.psi_5s",
+                                   "flux_harmonics.psi_7c", "flux_harmonics.psi_7s"]
     assert all(t.output for t in d[:2]) and not any(t.output for t in q[2:])
 
 

@@ -117,17 +117,18 @@ def test_nested_refit_is_never_worse_than_its_parent(base80, effect, load, seed)
 
 
 def test_effect_at_its_bound_is_never_significant(base80):
-    """Voltage samples *leading* the current by one sample want a negative delay: the fit holds it at
-    its physical bound (0) and explain says so instead of claiming it."""
+    """Voltage samples *lagging* the current by four samples want a delay beyond the voltage path's
+    physical range (a DAQ filter of two samples at most; its column interpolates one): the fit holds
+    it at the bound and explain says so instead of claiming it. (A lead is a negative delay within
+    range: tests/test_effect_families.py.)"""
     recs = []
     for j in range(4):
         r = simulate(GEAR, "healthy", (60.0, 100.0)[j % 2], 1.0, seed=820 + j)
-        v = np.hstack((r.v_abc[:, 1:], r.v_abc[:, -1:]))
-        recs.append(Record(r.t, v, r.i_abc, source=f"lead_{j}", meta=r.meta))
+        v = np.hstack((r.v_abc[:, :1].repeat(4, axis=1), r.v_abc[:, :-4]))
+        recs.append(Record(r.t, v, r.i_abc, source=f"lag_{j}", meta=r.meta))
     doc = ex.explain(base80, prepare(recs, GEAR), candidates=["voltage_delay", "current_offset"])
     row = next(c for c in doc["candidates"] if c["effect"] == "voltage_delay")
-    assert row["at_bound"] and not row["significant"]
-    assert {**row["params"], **row.get("unpinned_params", {})}["delay_samples"] == 0.0  # held at the bound
+    assert row["at_bound"] and not row["significant"], row
     assert "at bound" in row["note"]
 
 
@@ -148,17 +149,19 @@ def test_an_effect_beyond_its_sensor_class_is_at_bound_not_significant(base80, e
 
 
 def test_second_hidden_effect_is_claimed_given_the_first(base80):
-    """Offset and delay hidden together at 60 and 100 % load: the delay is significant on its own;
-    the offset's share varies with the load against a control that still lacks the delay, so it
-    is judged again with the delay accepted (forward selection) and is significant then."""
+    """Offset and delay hidden together at 60 and 100 % load: both are claimed. The offset's share
+    varies with the load against a control that still lacks the delay; where it misses the level on
+    its own it is judged again with the delay accepted (forward selection) and is significant then
+    (the voltage path's one-step estimate now reads the delay with the offset unmodelled, and both
+    are claimed on their own)."""
     eff = {"current_offset": 0.1, "voltage_delay": 1.0}
     recs = [simulate(GEAR, "healthy", (60.0, 100.0)[j % 2], 1.0, seed=300 + j, effects=eff) for j in range(4)]
     doc = ex.explain(base80, prepare(recs, GEAR))
     sig = {c["effect"]: c for c in doc["candidates"] if c["significant"]}
     assert set(sig) == set(eff), doc["candidates"][:3]
-    second = next(c for c in sig.values() if "given" in c)
-    assert second["given"] == [e for e in sig if e != second["effect"]]
-    assert second["p_value_given"] < ex.ALPHA and second["explained_fraction_given"] >= ex.MIN_EXPLAINED
+    for second in (c for c in sig.values() if "given" in c):
+        assert second["given"] == [e for e in sig if e != second["effect"]]
+        assert second["p_value_given"] < ex.ALPHA and second["explained_fraction_given"] >= ex.MIN_EXPLAINED
 
 
 def test_effective_size_against_its_limits():

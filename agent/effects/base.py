@@ -27,6 +27,7 @@ class Param:
     lower: float = -np.inf  #: physical lower bound (e.g. 0: the effect has a sign)
     upper: float = np.inf  #: physical upper bound
     scale: str | Callable[[dict], float] = ""  #: base value (key or function of them) the bounds multiply
+    split: bool = False  #: one signed part of a signed quantity (lower bound 0): sitting at 0 is no physical limit
 
     def bounds(self, base: dict) -> tuple[float, float]:
         """(lower, upper) in the parameter's unit for the drive's ``base`` values (unbounded where
@@ -67,6 +68,8 @@ class Effect:
     abc_orders: tuple[int, ...] = ()  #: harmonics of fe in the phase residual (0 = DC)
     reveals: str = ""  #: which records make it identifiable
     torque: str = "none"  #: what it adds to the torque regression (eq. 15)
+    raw: bool = False  #: its columns carry the measured samples' white noise (not only the smoothed current)
+    turns_voltage: bool = False  #: a column turns the voltage (the one-step regression then uses zoh2 columns)
     _cache: list = field(default_factory=lambda: [None, None], compare=False, repr=False)
 
     def __post_init__(self):

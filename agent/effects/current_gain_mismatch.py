@@ -1,4 +1,11 @@
-"""Relative gain errors of the acquisition's phase-b and phase-c current sensors (against phase a)."""
+"""Relative gain errors of the acquisition's phase-b and phase-c current sensors (against phase a).
+
+Family: i_x,meas = (1 + g_x) i_x for x = b, c; a gain error common to all three is a scale of the
+current the motor parameters take, so phase a is the reference.
+
+Degrees of freedom: g_b, g_c (dimensionless, each within +-0.1: a sensor class). Reported: gain_b
+(headline), gain_c.
+"""
 
 import numpy as np
 

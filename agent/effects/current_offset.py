@@ -1,4 +1,12 @@
-"""Current-sensor offsets of the acquisition (the drive's own sensors are not affected)."""
+"""Current-sensor offsets of the acquisition (the drive's own sensors are not affected).
+
+Family: constant offsets o_a, o_b, o_c (A) on the measured phase currents; their common part has
+no alpha-beta image (Clarke drops it), their differential part is a fixed alpha-beta vector
+o = (o_alpha, o_beta), which the dq frame sees turning at -omega_e.
+
+Degrees of freedom: o_alpha, o_beta (A, each within 5 % of the rated peak current: a sensor class).
+Reported: offset_A = |o| (headline) and the per-phase offsets ia_A, ib_A, ic_A (zero-sum part).
+"""
 
 import numpy as np
 

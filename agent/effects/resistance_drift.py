@@ -1,4 +1,15 @@
-"""Winding resistance drifting within a record (the winding warms or cools): R_s(t) = R_s + dR/dt (t - t_mid)."""
+"""Winding resistance drifting within a record (the winding warms or cools).
+
+Family: R_s(t) = R_s + (dR/dt)(t - t_mid): a ramp, zero-mean over the record, so that the model's
+R_s stays the mid-record level and the record's psi_m (fitted per record) keeps its own per-record
+level. The curvature of a first-order warming (r_2 ((t - t_mid)^2 - T^2/12), the family's second
+term) is left out: the refit reads half of each record, where the parabola is nearly the ramp (on
+the rig the pair's kept responses were 97 % correlated, and neither figure was pinned), and beyond
+it the parabola would be extrapolated into the held-out half.
+
+Degrees of freedom: dR/dt (ohm/s, +-0.5 R_s per s). Reported: dR_dt_ohm_per_s at mid-record
+(headline) and the change over the record.
+"""
 
 import numpy as np
 
@@ -6,8 +17,8 @@ from agent.effects.base import Effect, Param, smooth_current
 
 
 def columns(sig):
-    t = np.arange(sig.n) * sig.ts
-    return (-(t - 0.5 * sig.n * sig.ts) * smooth_current(sig)[0])[None]  # V per (ohm/s): -(t - t_mid) i
+    t = (np.arange(sig.n) - 0.5 * sig.n) * sig.ts  # s from mid-record
+    return (-t * smooth_current(sig)[0])[None]  # V per (ohm/s): -(t - t_mid) i
 
 
 def report(v, ctx):

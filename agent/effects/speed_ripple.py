@@ -1,4 +1,13 @@
-"""Rotor speed ripple at the shaft frequency that the model's speed signal does not carry."""
+"""Rotor speed ripple at the shaft frequency that the model's speed signal does not carry.
+
+Family: the rotor's speed ripples at f_r = fe/p by delta omega_e (rad/s); the model, turning its
+flux at the narrow-band speed, misses -j delta omega_e psi_s, and a frame that follows the current
+vector also turns against the rotor by a share s of its angle ripple.
+
+Degrees of freedom: k_w (0..3, the model's gain on the measured speed error's column; 1 where its
+response is exact), frame_share s (-1..1). Reported: omega_e_ripple_rad_s = (1 - s) times the
+measured speed error's line (headline), frame_angle_share, measured_speed_error_rad_s, k_w.
+"""
 
 import numpy as np
 

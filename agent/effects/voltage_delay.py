@@ -1,4 +1,21 @@
-"""Voltage channel delayed against the current channel by d samples (DAQ filter group delays)."""
+"""The voltage path: a signed delay between the reported and the applied voltage, and the hold.
+
+Family: v_reported(k) = v_applied(k - d), d in samples, signed: d > 0 the report lags the applied
+voltage (a DAQ anti-alias filter), d < 0 it leads (a drive reporting its command, which it applies
+one computation period later: d = -1). Besides, the applied voltage may be held constant in the
+rotor's dq frame over the interval (a continuous inverter, or the uncompensated part of a drive's
+angle compensation) instead of in abc (PWM, what the model's mid-angle conversion assumes): the
+applied dq voltage is then the reported one turned by a omega_e T_s, a = +0.5 for a dq hold.
+
+Degrees of freedom (linear, exact for zero-order-held signals with |d| <= 1):
+  d_lag >= 0 (samples, <= 2): the forward difference v(k+1) - v(k);
+  d_lead >= 0 (samples, <= 1.5): minus the backward difference v(k) - v(k-1);
+  advance a (samples, -1..1): j omega_e T_s v(k), the rotation.
+Reported: delay_samples = d_lag - d_lead (headline), advance_samples = a, and their sum
+rotation_samples, the angle by which the applied voltage leads the reported one in units of
+omega_e T_s. At constant speed with a smooth voltage all three columns are nearly j omega_e T_s v:
+only the sum is pinned then, and delay and advance are reported null.
+"""
 
 import numpy as np
 
@@ -6,23 +23,41 @@ from agent.effects.base import Effect, Param, mid_angle, phase_to_dq
 
 
 def columns(sig):
-    # true v(k) = v_meas(k + d) ~ v_meas(k) + d (v_meas(k+1) - v_meas(k))   (exact for 0 <= d <= 1)
-    dv = np.zeros_like(sig.v_abc)
-    dv[:, :-1] = np.diff(sig.v_abc, axis=1)
-    return phase_to_dq(dv, mid_angle(sig))[None]
+    # v_applied(k) = v_reported(k + d): d > 0 interpolates forward, d < 0 backward   (V per sample)
+    forward, backward = np.zeros_like(sig.v_abc), np.zeros_like(sig.v_abc)
+    forward[:, :-1] = np.diff(sig.v_abc, axis=1)
+    backward[:, 1:] = -np.diff(sig.v_abc, axis=1)
+    mid = mid_angle(sig)
+    turn = sig.omega_e * sig.ts * np.stack((-sig.v_dq[1], sig.v_dq[0]))  # j omega_e T_s v (V per sample)
+    return np.stack((phase_to_dq(forward, mid), phase_to_dq(backward, mid), turn))
+
+
+def report(v, ctx):
+    delay = float(v[0] - v[1])
+    return {"delay_samples": delay, "advance_samples": float(v[2]), "rotation_samples": delay + float(v[2]),
+            "delay_us": delay * ctx["ts"] * 1e6}
 
 
 EFFECT = Effect(
     id="voltage_delay",
-    physics="The voltage samples lag the current samples by d sampling periods (DAQ anti-alias "
-            "filters of different group delay): v_meas(k) = v(k - d), d in samples (0..1).",
+    physics="The reported voltage is the applied one delayed by d samples, v_rep(k) = v_app(k - d), d signed "
+            "(> 0: a DAQ filter; < 0: a drive reporting its command before it applies it), and an applied "
+            "voltage held constant in dq rather than in abc turns by a omega_e T_s against the report "
+            "(a = 0.5 for a dq hold); d and a in samples.",
     kind="voltage",
-    params=(Param("d", "samples", "voltage-channel delay behind the current channel", 1.0, lower=0.0, upper=2.0),),
-    columns=columns,
-    report=lambda v, ctx: {"delay_samples": float(v[0]), "delay_us": float(v[0] * ctx["ts"] * 1e6)},
-    signature="residual correlated with the voltage increment v(k+1) - v(k) (cross-correlation with the "
-              "input at lag +-1); at constant speed mostly a rotation of the voltage by omega_e d T_s",
+    params=(Param("d_lag", "samples", "delay of the reported voltage behind the applied one", 1.0, 0.0, 2.0,
+                  split=True),
+            Param("d_lead", "samples", "lead of the reported voltage before the applied one", 1.0, 0.0, 1.5,
+                  split=True),
+            Param("advance", "samples", "rotation of the applied dq voltage against the reported, in omega_e T_s",
+                  1.0, -1.0, 1.0)),
+    columns=columns, report=report,
+    signature="residual correlated with the voltage increments v(k+1) - v(k) and v(k) - v(k-1) "
+              "(cross-correlation with the input at lag +-1); at constant speed mostly a rotation of the "
+              "voltage by omega_e (d + a) T_s",
     reveals="any record with the current loop's broadband voltage (the one-step regression reads the delay "
-            "sample to sample); with a smooth voltage at one constant speed it is only a rotation "
-            "omega_e d T_s, absorbed into the lumped parameters: speed or load steps of 10 % or more reveal it then",
+            "sample to sample and tells it from the hold); with a smooth voltage at one constant speed only "
+            "the rotation omega_e (d + a) T_s is seen, partly absorbed into the lumped parameters: speed or "
+            "load steps of 10 % or more reveal it then",
+    raw=True, turns_voltage=True,
 )

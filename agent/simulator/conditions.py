@@ -22,6 +22,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 from agent.errors import InputError
 
 
@@ -99,7 +101,9 @@ EFFECTS: dict[str, EffectSpec] = {
         "(U_dt ~ U_dc t_dead f_sw); only visible as a model error with voltage_source='reference', "
         "a measured terminal voltage already contains it"),
     "flux_harmonics": EffectSpec(
-        0.005, "Wb", "5th/7th rotor-flux harmonics (psi_6/2 each) -> psi_pm,d = psi_m + psi_6 cos(6 theta_e)"),
+        0.005, "Wb", "5th/7th rotor-flux space harmonics: psi_a = psi_m cos(theta) + psi_5 cos(5 theta + phi_5) + "
+        "psi_7 cos(7 theta + phi_7); a number psi_6 means psi_5 = psi_7 = psi_6/2 at phase 0 (psi_pm,d = psi_m + "
+        "psi_6 cos(6 theta_e)), a dict {psi_5, phase_5, psi_7, phase_7} (Wb, rad) sets each"),
     "voltage_delay": EffectSpec(
         1.0, "samples", "voltage channel lags the current channel by d samples (DAQ filter delays), "
         "fractional delays by a Kaiser-windowed sinc interpolator (32 taps)"),
@@ -119,6 +123,22 @@ EFFECTS: dict[str, EffectSpec] = {
 }
 
 _MAX_DELAY = 64.0  # samples
+_MAX_LEAD = 4.0  # samples a voltage may lead (the simulation runs past the record by the interpolator's half length)
+_HARMONIC_KEYS = ("psi_5", "phase_5", "psi_7", "phase_7")
+
+
+def _check_harmonics(value: dict) -> dict[str, float]:
+    """A flux_harmonics dict {psi_5, phase_5, psi_7, phase_7} (Wb, rad; missing: 0) validated."""
+    bad = [k for k in value if k not in _HARMONIC_KEYS]
+    if bad:
+        raise InputError(f"effect 'flux_harmonics': unknown key {bad[0]!r} (known: {', '.join(_HARMONIC_KEYS)})")
+    try:
+        out = {k: float(value.get(k, 0.0)) for k in _HARMONIC_KEYS}
+    except (TypeError, ValueError):
+        raise InputError(f"effect 'flux_harmonics': values must be numbers, got {value!r}") from None
+    if not all(np.isfinite(list(out.values()))) or out["psi_5"] < 0 or out["psi_7"] < 0:
+        raise InputError("effect 'flux_harmonics': amplitudes must be finite and >= 0, phases finite")
+    return out
 
 
 def conditions_for(kind: str) -> list[str]:
@@ -148,14 +168,17 @@ def check_effects(effects) -> dict[str, float]:
         if name not in EFFECTS:
             raise InputError(f"unknown effect '{name}' (known: {', '.join(EFFECTS)})")
         value = EFFECTS[name].default if value is None else value
+        if name == "flux_harmonics" and isinstance(value, dict):
+            out[name] = _check_harmonics(value)
+            continue
         try:
             value = float(value)
         except (TypeError, ValueError):
             raise InputError(f"effect '{name}': magnitude must be a number, got {value!r}") from None
         if value != value or abs(value) == float("inf"):
             raise InputError(f"effect '{name}': magnitude must be finite")
-        if name == "voltage_delay" and not 0.0 <= value <= _MAX_DELAY:
-            raise InputError(f"effect 'voltage_delay': delay must be within 0..{_MAX_DELAY:g} samples")
+        if name == "voltage_delay" and not -_MAX_LEAD <= value <= _MAX_DELAY:
+            raise InputError(f"effect 'voltage_delay': delay must be within -{_MAX_LEAD:g}..{_MAX_DELAY:g} samples")
         if name == "magnetic_saturation" and not 0.0 <= value < 0.9:
             raise InputError("effect 'magnetic_saturation': L_q drop must be within 0..0.9")
         if name in ("inverter_deadtime", "flux_harmonics", "speed_ripple") and value < 0:

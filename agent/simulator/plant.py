@@ -12,10 +12,13 @@ One call simulates ``n`` samples at ``T_s``. Per sample k (time t_k):
 3. the plant is integrated over [t_k, t_k + T_s) with ``n_sub`` RK4 steps; the inverter holds the
    alpha-beta voltage (command + dead-time error), disturbance torques are held per sample.
 
-Plant (rotor frame, flux state; reduces exactly to eq. 5 when psi_6 = 0 and a = 0):
-    d psi_d/dt = v_d - R_s i_d + omega_e psi_q,   i_d = (psi_d - psi_m - psi_6 cos 6 theta_e) / L_d
-    d psi_q/dt = v_q - R_s i_q - omega_e psi_d,   i_q = psi_q / L_q0 (1 + a (psi_q/psi_qr)^2)
-    T_e = 1.5 n_p (psi_d i_q - psi_q i_d + i_d d psi_pm,d/d theta_e)
+Plant (rotor frame, flux state; reduces exactly to eq. 5 when the harmonics are 0 and a = 0):
+    d psi_d/dt = v_d - R_s i_d + omega_e psi_q,   i_d = (psi_d - psi_pm,d) / L_d
+    d psi_q/dt = v_q - R_s i_q - omega_e psi_d,   i_q = psi_i / L_q0 (1 + a (psi_i/psi_qr)^2), psi_i = psi_q - psi_pm,q
+    T_e = 1.5 n_p (psi_d i_q - psi_q i_d + i_d d psi_pm,d/d theta_e + i_q d psi_pm,q/d theta_e)
+with the magnet flux in the rotor frame psi_pm,d = psi_m + h_dc cos 6 theta_e + h_ds sin 6 theta_e,
+psi_pm,q = h_qc cos 6 theta_e + h_qs sin 6 theta_e (the 5th and 7th space harmonics, see
+``simulation.flux_harmonic_coefficients``).
     J_1 d omega_1/dt = T_e - B_1 omega_1 - T_sh - T_dist,1,   T_sh = K_s (theta_1 - theta_2) + C_s (omega_1 - omega_2)
     J_2 d omega_2/dt = T_sh - B_2 omega_2 - T_L0 (1 + k_load (omega_2/omega_ref - 1)) - T_dist,2
 
@@ -29,9 +32,9 @@ import math
 from numba import njit
 
 # indices into the parameter vector ``par`` (see simulation.py for how each is set)
-(T_S, N_SUB, N_P, R_S, R_DRIFT, K_REC, L_D, L_Q0, PSI_M, PSI_6, SAT_A, PSI_QR,
+(T_S, N_SUB, N_P, R_S, R_DRIFT, K_REC, L_D, L_Q0, PSI_M, H_DC, H_DS, H_QC, H_QS, SAT_A, PSI_QR,
  J_1, J_2, K_S, C_S, B_1, B_2, T_L0, K_LOAD, W_REF, U_DT, U_MAX,
- LD_HAT, LQ_HAT, PSIM_HAT, KP_D, KP_Q, KI_D, KI_Q, KP_W, KI_W, T_MAX, K_STEP, DT_STEP, N_PAR) = range(36)
+ LD_HAT, LQ_HAT, PSIM_HAT, KP_D, KP_Q, KI_D, KI_Q, KP_W, KI_W, T_MAX, K_STEP, DT_STEP, N_PAR) = range(39)
 # derived entries (reciprocals: divisions dominate the RK stages), filled by ``derived(par)``
 (INV_LD, INV_LQ0, INV_PSIQR, INV_J1, INV_J2, TL_SLOPE, N_PAR_ALL) = range(N_PAR, N_PAR + 7)
 
@@ -50,13 +53,22 @@ def derived(par):
 
 
 @njit(cache=True, nogil=True)
+def _magnet(th_e, par):
+    """Magnet flux in the rotor frame (Wb) and its derivatives by theta_e: (d, q, d', q')."""
+    if par[H_DC] == 0.0 and par[H_DS] == 0.0 and par[H_QC] == 0.0 and par[H_QS] == 0.0:
+        return par[PSI_M], 0.0, 0.0, 0.0
+    c6, s6 = math.cos(6.0 * th_e), math.sin(6.0 * th_e)
+    return (par[PSI_M] + par[H_DC] * c6 + par[H_DS] * s6, par[H_QC] * c6 + par[H_QS] * s6,
+            6.0 * (par[H_DS] * c6 - par[H_DC] * s6), 6.0 * (par[H_QS] * c6 - par[H_QC] * s6))
+
+
+@njit(cache=True, nogil=True)
 def _currents(psi_d, psi_q, th_e, par):
     """Currents (A) from flux linkages (Wb) at electrical angle ``th_e`` (rad)."""
-    psi_pm = par[PSI_M]
-    if par[PSI_6] != 0.0:
-        psi_pm += par[PSI_6] * math.cos(6.0 * th_e)
-    r = psi_q * par[INV_PSIQR]
-    return (psi_d - psi_pm) * par[INV_LD], psi_q * par[INV_LQ0] * (1.0 + par[SAT_A] * r * r)
+    pm_d, pm_q, _, _ = _magnet(th_e, par)
+    psi_i = psi_q - pm_q
+    r = psi_i * par[INV_PSIQR]
+    return (psi_d - pm_d) * par[INV_LD], psi_i * par[INV_LQ0] * (1.0 + par[SAT_A] * r * r)
 
 
 @njit(cache=True, nogil=True)
@@ -87,9 +99,9 @@ def _deriv(psi_d, psi_q, w1, w2, th1, th2, v_a, v_b, R_s, T_1, T_2, par, th_k, c
     v_d = v_a * c + v_b * s
     v_q = -v_a * s + v_b * c
     i_d, i_q = _currents(psi_d, psi_q, th_e, par)
-    dpm = -6.0 * par[PSI_6] * math.sin(6.0 * th_e) if par[PSI_6] != 0.0 else 0.0
+    _, _, dpm_d, dpm_q = _magnet(th_e, par)
     w_e = n_p * w1
-    T_e = 1.5 * n_p * (psi_d * i_q - psi_q * i_d + i_d * dpm)
+    T_e = 1.5 * n_p * (psi_d * i_q - psi_q * i_d + i_d * dpm_d + i_q * dpm_q)
     T_sh = par[K_S] * (th1 - th2) + par[C_S] * (w1 - w2)
     T_L = par[T_L0] + par[TL_SLOPE] * (w2 - par[W_REF])  # = T_L0 (1 + k_load (w2/w_ref - 1))
     return (v_d - R_s * i_d + w_e * psi_q,

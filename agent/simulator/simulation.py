@@ -22,7 +22,7 @@ from agent.profile import DriveProfile, load_profile
 from agent.records import Record
 from agent.simulator import plant as P
 from agent.simulator.conditions import (FAMILIES, HEALTHY_RIPPLE, Harmonics, Pulse, check_condition,
-                                        check_effects)
+                                        _MAX_LEAD, check_effects)
 from agent.simulator.rig import RigParams, operating_point, psi_q_of_i_q, saturation, speed_pi_gains
 
 _TAPS_HALF = 16  # fractional-delay interpolator: 2 x 16 taps
@@ -65,8 +65,22 @@ def _terms(profile, cond, severity, rng_draws, sr_amp) -> np.ndarray:
     return np.array(rows, dtype=float).reshape(-1, P.N_TM)
 
 
+def flux_harmonic_coefficients(value) -> tuple[float, float, float, float]:
+    """(h_dc, h_ds, h_qc, h_qs), Wb: the rotor-frame magnet flux's 6th harmonic (:mod:`agent.simulator.plant`)
+    of the 5th and 7th space harmonics psi_a = psi_m cos(theta) + psi_5 cos(5 theta + phi_5) +
+    psi_7 cos(7 theta + phi_7). ``value``: {"psi_5", "phase_5", "psi_7", "phase_7"} (Wb, rad), or a
+    number psi_6: the 5th and the 7th equal, psi_6 / 2 each at phase 0 (psi_pm,d = psi_m + psi_6 cos 6 theta)."""
+    if not isinstance(value, dict):
+        value = {"psi_5": 0.5 * value, "psi_7": 0.5 * value}
+    p5, f5, p7, f7 = (float(value.get(k, 0.0)) for k in ("psi_5", "phase_5", "psi_7", "phase_7"))
+    # rotor frame: psi_5 e^{-j(6 theta + phi_5)} + psi_7 e^{+j(6 theta + phi_7)}
+    return (p5 * math.cos(f5) + p7 * math.cos(f7), -(p5 * math.sin(f5) + p7 * math.sin(f7)),
+            p7 * math.sin(f7) - p5 * math.sin(f5), p7 * math.cos(f7) - p5 * math.cos(f5))
+
+
 def _delay(x: np.ndarray, d: float, start: int, n: int) -> np.ndarray:
-    """``x`` (3, M) delayed by ``d`` >= 0 samples, samples ``start .. start+n-1`` (windowed sinc)."""
+    """``x`` (3, M) delayed by ``d`` samples, samples ``start .. start+n-1`` (windowed sinc); a negative
+    ``d`` advances it (the record leads: the samples after it are simulated)."""
     n0 = int(math.floor(d))
     mu = d - n0
     if mu < 1e-12:
@@ -126,7 +140,7 @@ def simulate(profile, condition: str = "healthy", load_pct: float = 80.0, second
     w_e = n_p * w_ref
     n_rec = int(round(seconds / T_s))
     n_warm = max(int(round(rig.t_warmup / T_s)), 128)  # >= history of the delay interpolator
-    n_tot = n_warm + n_rec + _TAPS_HALF
+    n_tot = n_warm + n_rec + _TAPS_HALF + int(_MAX_LEAD)  # the interpolator reads past the record, a lead further
 
     # record-level random draws (fixed order and count: same seed -> same ripple/noise for any condition)
     # The rig's geometry (where the defect sits on each part, the phases of the manufacturing ripple)
@@ -148,14 +162,15 @@ def simulate(profile, condition: str = "healthy", load_pct: float = 80.0, second
                else T_rated / (1.5 * n_p * rig.psi_m))
     sat = eff.get("magnetic_saturation", 0.0)
     sat_a, psi_qr = saturation(rig.L_q, I_rated, sat) if sat else (0.0, 1.0)
-    psi_6 = eff.get("flux_harmonics", 0.0)
+    h6 = flux_harmonic_coefficients(eff.get("flux_harmonics", 0.0))
 
     # steady state (i_d = 0, mean ripple = 0)
     T_e0 = op.T_L + (rig.B_1 + B_2) * w_ref
     iq0 = T_e0 / (1.5 * n_p * op.psi_m)
     psi_q0 = psi_q_of_i_q(iq0, rig.L_q, sat_a, psi_qr)
     th_e0 = n_p * th1_0
-    x0 = np.array([op.psi_m + psi_6 * math.cos(6.0 * th_e0), psi_q0, w_ref, w_ref,
+    c6, s6 = math.cos(6.0 * th_e0), math.sin(6.0 * th_e0)
+    x0 = np.array([op.psi_m + h6[0] * c6 + h6[1] * s6, psi_q0 + h6[2] * c6 + h6[3] * s6, w_ref, w_ref,
                    th1_0, th1_0 - (op.T_L + B_2 * w_ref) / rig.K_s])
     v_d0, v_q0 = -w_e * psi_q0, op.R_s * iq0 + w_e * op.psi_m
     th_v = th_e0 + 0.5 * w_e * T_s
@@ -167,7 +182,8 @@ def simulate(profile, condition: str = "healthy", load_pct: float = 80.0, second
     par = np.zeros(P.N_PAR)
     for idx, val in ((P.T_S, T_s), (P.N_SUB, rig.n_sub), (P.N_P, n_p), (P.R_S, op.R_s),
                      (P.R_DRIFT, eff.get("resistance_drift", 0.0)), (P.K_REC, n_warm),
-                     (P.L_D, rig.L_d), (P.L_Q0, rig.L_q), (P.PSI_M, op.psi_m), (P.PSI_6, psi_6),
+                     (P.L_D, rig.L_d), (P.L_Q0, rig.L_q), (P.PSI_M, op.psi_m), (P.H_DC, h6[0]),
+                     (P.H_DS, h6[1]), (P.H_QC, h6[2]), (P.H_QS, h6[3]),
                      (P.SAT_A, sat_a), (P.PSI_QR, psi_qr), (P.J_1, rig.J_1), (P.J_2, rig.J_2),
                      (P.K_S, rig.K_s), (P.C_S, rig.C_s), (P.B_1, rig.B_1), (P.B_2, B_2),
                      (P.T_L0, op.T_L), (P.K_LOAD, rig.k_load), (P.W_REF, w_ref),
@@ -232,5 +248,8 @@ def _meta(profile, condition, load_pct, seconds, seed, severity, eff, rig, op, B
     meta["fe_hz"] = profile.rated_fe_hz
     meta.update({f"f_{k}_hz": v for k, v in base_frequencies(profile).items()})
     for name, value in eff.items():
-        meta[f"effect.{name}"] = value
+        if isinstance(value, dict):
+            meta.update({f"effect.{name}.{k}": v for k, v in value.items()})
+        else:
+            meta[f"effect.{name}"] = value
     return {k: float(v) if isinstance(v, (float, np.floating)) else v for k, v in meta.items()}

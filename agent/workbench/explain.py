@@ -35,7 +35,7 @@ from agent.effects import get as get_effect
 from agent.errors import InputError
 from agent.evidence import effective_size
 from agent.workbench.excitation import dynamics, no_dynamics_note
-from agent.workbench.fitting import NONLINEAR, Prepared, Refit, fit_cost, heldout, refit
+from agent.workbench.fitting import NONLINEAR, Prepared, Refit, fit_cost, heldout, pinned_keys, refit
 
 ALPHA = 0.01  #: family-wise significance level of the test over records
 MIN_RECORDS = 3  #: records needed for the test
@@ -154,13 +154,24 @@ def nested(ctrl: Refit, preps: list[Prepared], new: tuple, base: dict, prior: di
 
 
 def reported(eid: str, r: Refit, ctx: dict) -> dict:
-    """Effect ``eid``'s parameters as refit ``r`` reports them: ``params``, its values where the
+    """Effect ``eid``'s parameters as refit ``r`` reports them: ``params``, each figure where the
     records pin it down and None where they cannot (as identify reports base values), and then
-    ``unpinned_params``, the values the fit landed on, which measure nothing."""
-    values = get_effect(eid).report(r.values[eid], ctx)
-    if r.identifiable[eid][0]:
+    ``unpinned_params``, the values the fit landed on for those, which measure nothing. An
+    identifiable effect whose records pin only some of its figures (a combination of its
+    parameters) gets a ``note`` naming the others and the records that would separate them."""
+    eff = get_effect(eid)
+    values = eff.report(r.values[eid], ctx)
+    if not r.identifiable[eid][0]:
+        return {"params": dict.fromkeys(values), "unpinned_params": values}
+    pinned = pinned_keys(eff, r.values[eid], r.info.get(eid), ctx)
+    loose = [k for k in values if not pinned[k]]
+    if not loose:
         return {"params": values}
-    return {"params": dict.fromkeys(values), "unpinned_params": values}
+    return {"params": {k: None if k in loose else v for k, v in values.items()},
+            "unpinned_params": {k: values[k] for k in loose},
+            "note": f"{', '.join(loose)} not separable from these records ("
+                    + (f"reported: {', '.join(k for k in values if pinned[k])}" if len(loose) < len(values) else
+                       "its response is pinned, no figure of it is") + f"); revealed by {eff.reveals}"}
 
 
 def unidentified_note(eid: str, how: dict) -> str:
@@ -169,7 +180,7 @@ def unidentified_note(eid: str, how: dict) -> str:
     why = ("the one-step regression pins it to no better than +-{:.0%} of a typical size".format(how["relative_se"])
            if how["stage"] == "one-step" else
            "it does not lower the error on the fit segments" if how["stage"].startswith("no gain") else
-           "a typical one would be absorbed into the base parameters")
+           "every combination of its parameters at a typical size would be absorbed into the base parameters")
     return f"not identifiable from these records: {why}; revealed by {get_effect(eid).reveals}"
 
 
@@ -418,6 +429,9 @@ def add_effects(baseline, preps: list[Prepared], effect_ids) -> tuple[object, di
                "at_bound": [e for e in new if r.at_bound.get(e)], "base": r.phys,
                "warnings": operating_warnings(baseline, preps)}
     for e in have + new:
+        note = reported(e, r, ctx).get("note")
+        if r.identifiable[e][0] and note:
+            figures["warnings"].append(f"{e}: {note}")
         if not r.identifiable[e][0]:
             figures["warnings"].append(f"{e}: {unidentified_note(e, r.identifiable[e][1])}; its parameters are not "
                                        f"reported (the model keeps the fitted values as lumped terms)")

@@ -47,6 +47,7 @@ from functools import cached_property
 
 import numba
 import numpy as np
+import scipy.linalg
 import scipy.optimize
 from scipy.signal import butter, sosfiltfilt
 
@@ -72,6 +73,8 @@ WITHIN_MIN = 0.01  #: share of an effect column's energy that must vary within r
 PRECISION = 0.1  #: a one-step effect is identifiable when its standard error is at most this share of a typical size
 SHARE_FLOOR = 0.1  #: a free-run effect is identifiable when the base parameters leave this share of its response
 VISIBLE_FLOOR = 5e-4  #: and that unabsorbed part is at least this NRMSE
+PRIOR_NRMSE = 1.5e-4  #: a free-run effect's typical-size step costs a response of this NRMSE (a prior at zero)
+HOLD = 1e6  #: weight that holds at zero a combination of an effect's parameters the free run does not see
 NOISE_LEVEL_REL = 0.05  #: relative uncertainty of the channels' noise variance read off the zero sequence
 DECIMATE = 4  #: the fit's error is read at every DECIMATE-th sample (the free run is simulated at all)
 _SCALE = np.array([1.0, 1e-2, 1.0])  # R_s,q ohm, L_qx H, R_s,d ohm
@@ -215,30 +218,76 @@ class OneStep:
     values: dict  #: voltage effect id -> parameter values (their units)
     se: dict  #: voltage effect id -> their standard errors
     rel_se: dict = field(default_factory=dict)  #: "Ld", "Lq": relative standard errors; "Rs_d": absolute (ohm)
-    axes: tuple = ()  #: (est_d, var_d, est_q, var_q): each axis's effect estimates theta / (T_s / L_x), variances
-    layout: dict = field(default_factory=dict)  #: effect id -> its slice in ``axes``' vectors
+    axes: tuple = ()  #: (est_d, info_d, est_q, info_q): each axis's effect estimates theta / (T_s / L_x), information
+    layout: dict = field(default_factory=dict)  #: voltage effect id -> its slice in ``axes``' vectors
+    within: tuple = ()  #: the voltage effects whose columns vary within records (the one-step regression's)
+    cov: dict = field(default_factory=dict)  #: voltage effect id -> the covariance matrix of its parameters
 
-    def rescaled(self, ld: float, lq: float, bounds: dict) -> tuple[dict, dict]:
-        """(values, se) with each axis's estimate converted through ``ld``, ``lq`` instead of the
-        regression's own T_s/L: an effect column is free of the channels' noise, the voltage
-        column is not, so where the refit has better inductances (a prior) they convert better
-        (dead time on smooth data: +39 % through the one-step L_d, +7 % through the prior's)."""
-        est_d, var_d, est_q, var_q = self.axes
+    def rescaled(self, ld: float, lq: float, bounds: dict, typical: dict) -> tuple[dict, dict]:
+        """(values, se) of the effects in :attr:`within` with each axis's estimate converted through
+        ``ld``, ``lq`` instead of the regression's own T_s/L: an effect column is free of the
+        channels' noise, the voltage column is not, so where the refit has better inductances (a
+        prior) they convert better (dead time on smooth data: +39 % through the one-step L_d, +7 %
+        through the prior's).
+
+        The two axes combine by their information (an axis may see only a combination: on d the
+        5th and the 7th flux harmonics are one column), with a prior N(0, typical^2) per parameter
+        (``typical``: effect id -> sizes): a combination neither axis sees stays at zero with a
+        standard error of its typical size. Values within ``bounds``; sets :attr:`cov`."""
+        est_d, info_d, est_q, info_q = self.axes
         k_d, k_q = ld / self.ld, lq / self.lq
+        info = info_d / k_d ** 2 + info_q / k_q ** 2
+        rhs = info_d @ est_d / k_d + info_q @ est_q / k_q
+        order = sorted(self.layout, key=lambda e: self.layout[e].start)
+        typ = np.concatenate([typical[e] for e in order]) if order else np.zeros(0)
+        post = info + np.diag(1.0 / typ ** 2)
+        cov = np.linalg.inv(post) if order else post
+        cov = cov * self.disagreement(k_d, k_q)
+        lower = np.concatenate([bounds[e][0] for e in order]) if order else typ
+        upper = np.concatenate([bounds[e][1] for e in order]) if order else typ
+        joint = bounded_lstsq(post, rhs, lower, upper)
         values, se = {}, {}
-        for eid, cut in self.layout.items():
-            v = _inverse_variance((est_d[cut] * k_d, var_d[cut] * k_d ** 2), (est_q[cut] * k_q, var_q[cut] * k_q ** 2))
-            values[eid] = np.clip(v[0], *bounds[eid])
-            se[eid] = v[1]
+        for eid in self.within:
+            cut = self.layout[eid]
+            values[eid], se[eid] = joint[cut], np.sqrt(np.diag(cov)[cut])
+            self.cov[eid] = cov[cut, cut]
         return values, se
 
 
-def _inverse_variance(a: tuple, b: tuple) -> tuple[np.ndarray, np.ndarray]:
-    """(mean, se) of two estimates (value, variance) combined by inverse variance (an infinite
-    variance: no estimate)."""
-    w = [np.where(np.isfinite(v), 1.0 / np.maximum(v, 1e-300), 0.0) for _, v in (a, b)]
-    total = np.maximum(w[0] + w[1], 1e-300)
-    return (w[0] * a[0] + w[1] * b[0]) / total, 1.0 / np.sqrt(total)
+    def disagreement(self, k_d: float = 1.0, k_q: float = 1.0) -> float:
+        """The axes' disagreement as a variance factor (the Birge ratio, at least 1): chi^2 of each
+        axis's estimate against the joint one in its information, over the constraints the second
+        axis adds. The same parameters seen through d and q differ beyond their noise where the
+        regression misses something (the speed ripple's slow columns, read at 25 Hz, disagreed by
+        4 sd on the rig), and then its standard errors are too small by that much."""
+        est_d, info_d, est_q, info_q = self.axes
+        if est_d.size == 0:
+            return 1.0
+        a, b = info_d / k_d ** 2, info_q / k_q ** 2
+        joint = np.linalg.pinv(a + b, rcond=1e-10) @ (a @ est_d * k_d + b @ est_q * k_q)
+        chi2 = sum(float((e * k - joint) @ m @ (e * k - joint)) for e, m, k in ((est_d, a, k_d), (est_q, b, k_q)))
+        rank = lambda m: int(np.linalg.matrix_rank(m, tol=1e-10 * max(np.abs(m).max(), 1e-300)))  # noqa: E731
+        dof = rank(a) + rank(b) - rank(a + b)
+        return max(1.0, chi2 / dof) if dof > 0 else 1.0
+
+
+def _block_info(g: np.ndarray, cols: slice, s2: float, shift: np.ndarray) -> np.ndarray:
+    """Information on the parameters ``cols`` of a least-squares regression with normal matrix ``g``
+    and residual variance ``s2``, the others estimated alongside (the Schur complement), less a
+    systematic error ``shift`` of their estimate (the noise compensation's), by Woodbury: zero along
+    a combination the columns cannot tell apart, where a covariance by pseudo-inverse would be zero."""
+    own = np.zeros(g.shape[0], dtype=bool)
+    own[cols] = True
+    g_oo = g[np.ix_(~own, ~own)]
+    scale = np.sqrt(np.abs(np.diag(g_oo))) + 1e-30
+    g_oo_inv = np.linalg.pinv(g_oo / np.outer(scale, scale), rcond=1e-12) / np.outer(scale, scale)
+    g_eo = g[np.ix_(own, ~own)]
+    info = (g[np.ix_(own, own)] - g_eo @ g_oo_inv @ g_eo.T) / max(s2, 1e-300)
+    val, vec = np.linalg.eigh(0.5 * (info + info.T))
+    info = (vec * np.maximum(val, 0.0)) @ vec.T  # the noise compensation can leave it indefinite
+    d = shift[cols]
+    i_d = info @ d
+    return info - np.outer(i_d, i_d) / (1.0 + d @ i_d)
 
 
 def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None) -> OneStep:
@@ -251,9 +300,10 @@ def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None) -
     records' static balance. Noise on the current and voltage samples inside X biases least
     squares (errors in variables); its share of X^T X follows from the noise levels
     (:func:`noise_signals`) and is subtracted (bias-compensated least squares). An effect parameter
-    p enters as (T_s/L_x) p; each axis gives an estimate, combined by inverse variance. Effects
-    whose columns barely vary within a record (less than ``WITHIN_MIN`` of their energy: a level
-    per record, like saturation) are left to the free run, as are output effects (y = x + o), which
+    p enters as (T_s/L_x) p; each axis gives an estimate, combined by information
+    (:meth:`OneStep.rescaled`). Effects whose columns barely vary within a record (less than
+    ``WITHIN_MIN`` of their energy: a level per record, like saturation) are left to the free run,
+    as are output effects (y = x + o), which
     enter here as o(k+1) - A(k) o(k), A(k) the state matrix of a first pass (which takes A = I), so
     that they do not bias the rest."""
     effs = [e for e in map(get_effect, effect_ids) if e.kind == "voltage"]
@@ -261,6 +311,12 @@ def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None) -
     terms_v = [e.terms() for e in effs]
     n_rec, n_out = len(preps), sum(len(e.params) for e in outs)
     segs = [p.sig.slice(p.start, p.split) for p in preps]
+    # eq. 6's voltage column leaves out the zoh2 input's turn of a held voltage by -omega_e T_s / 2
+    # ((I + A)/2 B u): a column that turns the voltage would take it (the voltage path's advance, read
+    # half a sample low), so with one the regression's voltage columns are the zoh2 model's; without
+    # one, eq. 6's, whose base values the free run has been judged with (zoh2 columns there moved
+    # them, and motulator's speed-ripple refit lost its 2x)
+    columns = zoh2_regressors if any(e.turns_voltage for e in effs) else plain_regressors
     noise = [noise_signals(s) for s in segs]
     coef = [(1.0, 0.0), (1.0, 0.0)]  # the state matrix's rows (own, cross x omega) behind the output columns
     for _ in range(2 if outs else 1):
@@ -270,11 +326,12 @@ def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None) -
         for axis, base in enumerate(BASE_TERMS["speed"]):
             terms = base + tuple(t for d_q in terms_v for t in d_q[axis])
             n = len(terms)
+            raw = np.array([True] * len(base) + [e.raw for e in effs for _ in e.params])
             m = n + n_out + n_rec
             g, h, yy, cnt, gn = np.zeros((m, m)), np.zeros(m), 0.0, 0, np.zeros((m, m))
             for j, (s, (noisy, quiet)) in enumerate(zip(segs, noise)):
                 x = np.zeros((s.n - 1, m))
-                x[:, :n] = regressors(terms, s)[:-1]
+                x[:, :n] = columns(axis, len(base), terms_v, s)[:-1]
                 if outs:  # y = x + o: o(k+1) - A(k) o(k), A(k) from the previous pass (first: I)
                     o = np.concatenate([e.cols(s)[:, axis] for e in outs])
                     o_other = np.concatenate([e.cols(s)[:, 1 - axis] for e in outs])
@@ -282,7 +339,9 @@ def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None) -
                     x[:, n:n + n_out] = (o[:, 1:] - a_own * o[:, :-1] - a_cross * s.omega_e[:-1] * o_other[:, :-1]).T
                 x[:, n + n_out + j] = 1.0
                 y = s.i_dq[axis, 1:]
-                xn = (regressors(terms, noisy) - regressors(terms, quiet))[:-1]  # columns are affine in v, i
+                xn = (columns(axis, len(base), terms_v, noisy)
+                      - columns(axis, len(base), terms_v, quiet))[:-1]  # columns are affine in v, i
+                xn[:, ~raw] = 0.0  # columns from the smoothed current carry no white noise
                 g += x.T @ x
                 gn[:n, :n] += xn.T @ xn
                 g[:n, :n] -= xn.T @ xn
@@ -302,28 +361,57 @@ def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None) -
             # the compensation's own uncertainty: the noise levels known to NOISE_LEVEL_REL; where
             # the regressors barely vary beyond their noise (smooth closed-loop data) it dominates
             d_theta = gi @ (NOISE_LEVEL_REL * gn @ theta)
-            cov = s2 * np.diag(gi) + d_theta ** 2
+            cov = s2 * gi + np.outer(d_theta, d_theta)
             ts = preps[0].sig.ts
             b = max(theta[2], ts / L_MAX_H) if np.isfinite(theta[2]) else ts / L_MAX_H  # column 2: v_d / v_q, T_s / L
             ls.append(ts / b)
-            rel[("Ld", "Lq")[axis]] = float(np.sqrt(max(cov[2], 0.0)) / b)
+            rel[("Ld", "Lq")[axis]] = float(np.sqrt(max(cov[2, 2], 0.0)) / b)
             if axis == 0:  # column 0: i_d, 1 - R_s T_s / L_d - (omega_e T_s)^2 / 2 (zoh2: the rotating frame)
                 w0 = float(np.mean(np.concatenate([q.omega_e for q in segs])))
                 rs_d = (1 - theta[0] - 0.5 * (w0 * ts) ** 2) / b
-                rel["Rs_d"] = float(np.sqrt(max(cov[0], 0.0)) / b)
+                rel["Rs_d"] = float(np.sqrt(max(cov[0, 0], 0.0)) / b)
             cols = slice(len(base), n)
             est.append(theta[cols] / b)
-            var.append(np.where(np.diag(g)[cols] > 0, cov[cols] / b**2, np.inf))  # a zero column: no estimate
+            # the residual holds at least the current channel's noise at k+1 (the compensation can push it below)
+            s2_floor = float(np.mean([p.noise_var[1] for p in preps]))
+            var.append(_block_info(g, cols, max(s2, s2_floor), d_theta) * b ** 2)
             new_coef.append((float(theta[0]), float(theta[1])))  # i_x and w * i_other: the state matrix's row
         coef = new_coef
     layout, j = {}, 0
-    for e_idx, e in enumerate(effs):
-        if within[e_idx] >= WITHIN_MIN * total[e_idx]:
-            layout[e.id] = slice(j, j + len(e.params))
+    for e in effs:
+        layout[e.id] = slice(j, j + len(e.params))
         j += len(e.params)
-    step = OneStep(float(ls[0]), float(ls[1]), float(rs_d), {}, {}, rel, (est[0], var[0], est[1], var[1]), layout)
-    step.values, step.se = step.rescaled(step.ld, step.lq, bounds or effect_bounds(layout, None))
+    varies = tuple(e.id for e_idx, e in enumerate(effs) if within[e_idx] >= WITHIN_MIN * total[e_idx])
+    step = OneStep(float(ls[0]), float(ls[1]), float(rs_d), {}, {}, rel, (est[0], var[0], est[1], var[1]), layout,
+                   varies)
+    step.values, step.se = step.rescaled(step.ld, step.lq, bounds or effect_bounds(layout, None), typical_sizes(effs))
     return step
+
+
+def typical_sizes(effs) -> dict:
+    """effect id -> (m,) its parameters' typical sizes (:attr:`agent.effects.base.Param.typical`)."""
+    return {e.id: np.array([p.typical for p in e.params]) for e in effs}
+
+
+V_COLUMN = 2  #: index of the voltage column in both axes' ``speed`` base terms
+
+
+def plain_regressors(axis: int, n_base: int, terms_v: list, s: Signals) -> np.ndarray:
+    """(N, n) one-step regressors of ``axis``: the ``speed`` form's base terms (eq. 6), then the
+    voltage effects' ``terms_v``."""
+    return regressors(BASE_TERMS["speed"][axis] + tuple(t for d_q in terms_v for t in d_q[axis]), s)
+
+
+def zoh2_regressors(axis: int, n_base: int, terms_v: list, s: Signals) -> np.ndarray:
+    """:func:`plain_regressors` with every voltage column as the zoh2 model applies it, (I + A)/2 B u,
+    whose cross-coupling turns u by -omega_e T_s / 2 (d: u_d + omega_e T_s/2 u_q, q: u_q -
+    omega_e T_s/2 u_d; the R_s T_s / 2L scale is left to L)."""
+    x = plain_regressors(axis, n_base, terms_v, s)
+    volt = [V_COLUMN] + list(range(n_base, x.shape[1]))
+    other = BASE_TERMS["speed"][1 - axis]
+    cross = regressors((other[V_COLUMN],) + tuple(t for d_q in terms_v for t in d_q[1 - axis]), s)
+    x[:, volt] += ((0.5, -0.5)[axis] * s.omega_e * s.ts)[:, None] * cross
+    return x
 
 
 def noise_signals(s: Signals) -> tuple[Signals, Signals]:
@@ -367,11 +455,14 @@ def effect_bounds(effect_ids, base: dict | None) -> dict:
             for e in effect_ids}
 
 
-def at_bound(values: np.ndarray, bounds: tuple[np.ndarray, np.ndarray]) -> bool:
-    """Whether any parameter sits on its physical bound (then the data wanted it beyond physics)."""
+def at_bound(values: np.ndarray, bounds: tuple[np.ndarray, np.ndarray], effect=None) -> bool:
+    """Whether any parameter sits on its physical bound (then the data wanted it beyond physics);
+    the zero of a signed quantity's one-sided part (``Param.split``) is no bound."""
     lo, hi = bounds
     tol = 1e-6 * np.maximum(np.abs(values), 1e-12)
-    return bool(np.any(np.isfinite(lo) & (values <= lo + tol)) or np.any(np.isfinite(hi) & (values >= hi - tol)))
+    split = np.array([p.split for p in effect.params]) if effect is not None else np.zeros(len(values), dtype=bool)
+    low = np.isfinite(lo) & (values <= lo + tol) & ~(split & (lo == 0.0))
+    return bool(np.any(low) or np.any(np.isfinite(hi) & (values >= hi - tol)))
 
 
 @dataclass
@@ -385,6 +476,7 @@ class Refit:
     cost: float
     identifiable: dict  #: effect id -> (bool, {how it was judged})
     at_bound: dict = field(default_factory=dict)  #: effect id -> whether a parameter sits on its physical bound
+    info: dict = field(default_factory=dict)  #: effect id -> what :func:`pinned_keys` judges its figures by
 
 
 CONFLICT_SD = 3.0  #: a prior further than this many combined sd from the records' own estimate is not used
@@ -464,7 +556,7 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
     bounds = effect_bounds(effect_ids, base)
     step = one_step(preps, effect_ids, bounds)
     ld, lq, rs_d = with_prior(step, prior)
-    step.values, step.se = step.rescaled(ld, lq, bounds)
+    step.values, step.se = step.rescaled(ld, lq, bounds, typical_sizes(map(get_effect, effect_ids)))
     # R_s,d: with a nameplate R_s, the one-step's combined with it; else the free run fits it where
     # the records' i_d differs between them (MTPA: the d axis's steady state reads R_s,d i_d, better
     # than the one-step's 1 - theta_0, about 1 % of theta_0); else the one-step's where it pins it
@@ -477,6 +569,11 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
     # one_step sets the effects it pins down; those it cannot (smooth closed-loop data: little
     # sample-to-sample excitation) go to the free run with the rest, which judges them itself
     precise = {e.id for e in every if e.id in step.se and _one_step_rel(step, e) <= PRECISION}
+    # an effect of which the one-step pins some parameters only goes to the free run with those held
+    # at the one-step's values (the voltage path's delay read sample to sample, its advance not)
+    held = {e.id: (step.se[e.id] / typical_sizes([e])[e.id] <= PRECISION, step.values[e.id])
+            for e in every if e.id in step.se and e.id not in precise}
+    held = {k: v for k, v in held.items() if v[0].any()}
     step.values = {k: v for k, v in step.values.items() if k in precise}
     solved = [e for e in every if e.id not in step.values]
     data = []
@@ -523,9 +620,23 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
     psi_lo, psi_hi = psi_range(prior)
     lower = np.concatenate([np.full(n_rec, psi_lo)] + [bounds[e.id][0] for e in solved])
     upper = np.concatenate([np.full(n_rec, psi_hi)] + [bounds[e.id][1] for e in solved])
+    i_norm = np.sqrt(sum(np.sum(d[2][:, ::DECIMATE] ** 2) for d in data))
+    # a typical-size move of the effects' parameters costs a response of PRIOR_NRMSE: combinations
+    # the records do not see stay near zero instead of wandering to a bound
+    ridge = np.concatenate([np.zeros(n_rec)] + [(PRIOR_NRMSE * i_norm / typical_sizes([e])[e.id]) ** 2
+                                                for e in solved])
+
+    prior_g, prior_h, j = np.diag(ridge), np.zeros(n_lin), n_rec
+    for e in solved:
+        if e.id in held:
+            mask, value = held[e.id]
+            w = np.where(mask, HOLD * (VISIBLE_FLOOR * i_norm / typical_sizes([e])[e.id]) ** 2, 0.0)
+            prior_g[j:j + w.size, j:j + w.size] += np.diag(w)
+            prior_h[j:j + w.size] += w * value
+        j += len(e.params)
 
     def solve(z):
-        g, h, parts = np.zeros((n_lin, n_lin)), np.zeros(n_lin), []
+        g, h, parts = prior_g.copy(), prior_h.copy(), []
         with np.errstate(over="ignore", invalid="ignore"):
             for y, s in responses(z, solved):
                 s2 = s.reshape(n_lin, -1)
@@ -557,19 +668,11 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
     alpha, _ = solve(sol.x)
     if alpha is None:  # the free run diverges even at the best point found
         alpha, sol.cost = np.full(n_lin, np.nan), np.inf
-    values, j = dict(step.values), n_rec
-    for e in solved:
-        values[e.id] = alpha[j:j + len(e.params)]
-        j += len(e.params)
-    values = {e.id: values[e.id] for e in every}
-    found = (np.exp(sol.x) * _SCALE[:n_z]).tolist()
-    phys = {**dict(zip(NONLINEAR, found)), "Rs_d": found[2] if free_d else found[0] if tied else rs_d, "Ld": ld, "Lq": lq,
-            "psi_m": float(np.mean(alpha[:n_rec]))}
-    model = base_model(form, ts, fe_hz, phys, effect_ids, values)
-    judged = {}
+    judged, info, kept = {}, {}, {}
     for e in every:
         if e.id in step.values:  # read by the one-step regression, pinned to a fraction of a typical size
             judged[e.id] = (True, {"stage": "one-step", "relative_se": _one_step_rel(step, e)})
+            info[e.id] = {"cov": step.cov[e.id]}
         else:
             judged[e.id] = (False, {"stage": "free run", "unabsorbed_share": 0.0, "visible_nrmse": 0.0})
     if solved and np.isfinite(sol.cost):  # output sensitivities to the base parameters; effects' responses
@@ -579,10 +682,45 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
         y0 = output(sol.x)
         sens = [(output(sol.x + 1e-4 * e) - y0) / 1e-4 for e in np.eye(n_z)]
         s_all = np.concatenate([s.reshape(s.shape[0], -1) for _, s in responses(sol.x, solved)], axis=1)
-        i_norm = np.sqrt(sum(np.sum(d[2][:, ::DECIMATE] ** 2) for d in data))
-        judged.update(_unabsorbed(np.column_stack(sens + list(s_all[:n_rec])), s_all, solved, i_norm, n_rec))
-    return Refit(tuple(effect_ids), model, phys, values, fit_cost(model, preps), judged,
-                 {e: at_bound(values[e], bounds[e]) for e in values})
+        kept = _unabsorbed(np.column_stack(sens + list(s_all[:n_rec])), s_all, solved, i_norm, n_rec)
+        # a combination of an effect's parameters whose typical-size step leaves less than
+        # VISIBLE_FLOOR to the base parameters is held at zero: the records do not see it, and a
+        # free one goes where the rest of the model's error pulls it (on the rig, saturation's cross
+        # term to its bound)
+        pen, j = np.zeros((n_lin, n_lin)), n_rec
+        for e in solved:
+            if e.id in held:  # the one-step's values hold it already
+                j += len(e.params)
+                continue
+            val, vec = np.linalg.eigh(kept[e.id][2]["kept"])
+            unseen = vec[:, np.sqrt(np.maximum(val, 0.0)) < VISIBLE_FLOOR * i_norm] / typical_sizes([e])[e.id][:, None]
+            pen[j:j + len(e.params), j:j + len(e.params)] = HOLD * (VISIBLE_FLOOR * i_norm) ** 2 * unseen @ unseen.T
+            j += len(e.params)
+        if pen.any():
+            prior_g += pen
+            again, _ = solve(sol.x)
+            alpha = again if again is not None else alpha
+    values, j = dict(step.values), n_rec
+    for e in solved:
+        values[e.id] = alpha[j:j + len(e.params)]
+        j += len(e.params)
+    values = {e.id: values[e.id] for e in every}
+    found = (np.exp(sol.x) * _SCALE[:n_z]).tolist()
+    phys = {**dict(zip(NONLINEAR, found)), "Rs_d": found[2] if free_d else found[0] if tied else rs_d, "Ld": ld, "Lq": lq,
+            "psi_m": float(np.mean(alpha[:n_rec]))}
+    model = base_model(form, ts, fe_hz, phys, effect_ids, values)
+    cost = fit_cost(model, preps)
+    # what the refit leaves on the fit segments beyond the channels' noise, as an NRMSE
+    i_fit = sum(float(np.sum(p.sig.i_dq[:, p.fit_slice] ** 2)) for p in preps)
+    left = float(np.sqrt(max(cost, 0.0) / max(i_fit, 1e-300))) if np.isfinite(cost) else np.inf
+    for eid, (ok, how, inf) in kept.items():
+        judged[eid], info[eid] = (ok, how), {**inf, "left": left}
+        if eid in held:  # its figures pinned by the one-step count too
+            pinned = [p.name for p, m in zip(get_effect(eid).params, held[eid][0]) if m]
+            judged[eid] = (True, {**how, "one_step_pinned": pinned})
+            info[eid]["cov"] = step.cov[eid]
+    return Refit(tuple(effect_ids), model, phys, values, cost, judged,
+                 {e: at_bound(values[e], bounds[e], get_effect(e)) for e in values}, info)
 
 
 def _one_step_rel(step: OneStep, effect) -> float:
@@ -591,18 +729,86 @@ def _one_step_rel(step: OneStep, effect) -> float:
 
 
 def _unabsorbed(base: np.ndarray, s_all: np.ndarray, effs, i_norm: float, first: int) -> dict:
-    """Identifiability of effects fitted by the free run: the share of a typical-size effect's
-    free-run response that the base parameters (``base``: output sensitivities to them) cannot
-    absorb, and that unabsorbed part's norm over the measured current's (an NRMSE)."""
+    """Identifiability of effects fitted by the free run: for each effect, the combination of its
+    parameters (typical-size steps) whose free-run response the base parameters (``base``: output
+    sensitivities to them) absorb least. The effect is identifiable when that combination keeps
+    ``SHARE_FLOOR`` of its response and the part kept is at least ``VISIBLE_FLOOR`` of the measured
+    current's norm (an NRMSE). effect id -> (identifiable, how, info): info is what
+    :func:`pinned_keys` needs to judge each reported figure, the unabsorbed and the whole
+    responses' Gram matrices per typical-size step and the current's norm."""
     q, _ = np.linalg.qr(base / np.maximum(np.linalg.norm(base, axis=0), 1e-300))
     out, j = {}, first
     for e in effs:
-        resp = s_all[j:j + len(e.params)].T @ np.array([p.typical for p in e.params])
-        left = float(np.linalg.norm(resp - q @ (q.T @ resp)))
-        share, visible = left / max(np.linalg.norm(resp), 1e-300), left / i_norm
-        out[e.id] = (share >= SHARE_FLOOR and visible >= VISIBLE_FLOOR,
-                     {"stage": "free run", "unabsorbed_share": share, "visible_nrmse": visible})
+        resp = s_all[j:j + len(e.params)].T * typical_sizes([e])[e.id]  # (n, m) typical-size steps
+        left = resp - q @ (q.T @ resp)
+        kept, whole = left.T @ left, resp.T @ resp
+        best = (-np.inf, 0.0, 0.0)
+        for u in _directions(kept, whole):  # the largest share kept, and the largest part kept
+            part = np.sqrt(max(float(u @ kept @ u), 0.0))
+            share = part / np.sqrt(max(float(u @ whole @ u), 1e-300))
+            visible = part / float(np.linalg.norm(u)) / i_norm
+            best = max(best, (min(share / SHARE_FLOOR, visible / VISIBLE_FLOOR), share, visible))
+        out[e.id] = (bool(best[0] >= 1.0), {"stage": "free run", "unabsorbed_share": float(best[1]),
+                                            "visible_nrmse": float(best[2])},
+                     {"kept": kept, "whole": whole, "i_norm": i_norm})
         j += len(e.params)
+    return out
+
+
+def _directions(kept: np.ndarray, whole: np.ndarray) -> list[np.ndarray]:
+    """Parameter combinations (typical-size units) that keep the most of their response: the top
+    generalized eigenvector of (kept, whole) and the top eigenvector of kept."""
+    reg = whole + 1e-12 * max(np.trace(whole), 1e-300) * np.eye(whole.shape[0])
+    _, vec = scipy.linalg.eigh(kept, reg)
+    return [vec[:, -1], np.linalg.eigh(kept)[1][:, -1]]
+
+
+def pinned_keys(effect, values: np.ndarray, info: dict | None, ctx: dict) -> dict:
+    """Which of ``effect``'s reported figures the records pin down: key -> bool. A figure is
+    pinned by the one-step regression when its standard error (through its gradient in the
+    parameters) is at most ``PRECISION`` of its change over a typical-size step; by the free run
+    when the parameter step that changes it by that much with the least response left to the base
+    parameters keeps ``SHARE_FLOOR`` of its response, and a part at least ``VISIBLE_FLOOR`` of the
+    current and at least what the refit leaves on its fit segments beyond the channels' noise
+    (``left``, an NRMSE: a figure whose typical change
+    moves the output less than the remaining error is set by that error, model errors included:
+    motulator's delay at a load step read 1.39 samples with an advance of -0.43, its sum 0.96).
+    ``info``: :attr:`Refit.info`'s; without it (the model's own effect) every figure counts as pinned."""
+    values = np.asarray(values, dtype=float)
+    typ = typical_sizes([effect])[effect.id]
+    keys = effect.report(values, ctx)
+    if not info:
+        return dict.fromkeys(keys, True)
+    grads = np.zeros((len(keys), values.size))
+    for j in range(values.size):  # gradient per typical-size step, by central differences
+        h = 1e-4 * typ[j]
+        up, dn = values.copy(), values.copy()
+        up[j] += h
+        dn[j] -= h
+        a, b = effect.report(up, ctx), effect.report(dn, ctx)
+        grads[:, j] = [(a[k] - b[k]) / (2 * h) * typ[j] for k in keys]
+    out = {}
+    for key, g in zip(keys, grads):
+        size = float(np.linalg.norm(g))  # the figure's change over a typical-size step along its gradient
+        if size == 0.0:  # not a function of the fitted parameters: read off the records (the dead time's knee)
+            out[key] = True
+            continue
+        if not np.isfinite(size):
+            out[key] = False
+            continue
+        out[key] = False
+        if "cov" in info:  # the one-step regression's standard error
+            cov = np.asarray(info["cov"]) / np.outer(typ, typ)
+            var = float(g @ np.where(np.isfinite(cov), cov, 1e300) @ g)
+            out[key] = bool(np.sqrt(max(var, 0.0)) <= PRECISION * size)
+        if "kept" in info and not out[key]:  # the free run's unabsorbed response
+            kept, whole = info["kept"], info["whole"]
+            m = kept + 1e-9 * max(np.trace(kept), 1e-300) * np.eye(kept.shape[0])
+            u = np.linalg.solve(m, g)
+            u *= size / float(g @ u)  # the least-kept step that moves the figure by ``size``
+            left = np.sqrt(max(float(u @ kept @ u), 0.0))
+            share = left / np.sqrt(max(float(u @ whole @ u), 1e-300))
+            out[key] = bool(share >= SHARE_FLOOR and left / info["i_norm"] >= max(VISIBLE_FLOOR, info.get("left", 0.0)))
     return out
 
 
