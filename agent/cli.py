@@ -289,14 +289,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_simulate)
 
     s = sub.add_parser("frequencies", parents=[common], help="fault characteristic frequencies (eqs. 19-22)")
-    s.add_argument("--profile", required=True)
+    s.add_argument("--profile", required=True, help="drive profile TOML")
     s.add_argument("--fe", type=number(0, 1e5, low_open=True, unit="Hz"),
                    help="electrical frequency, Hz (default: rated speed)")
     s.add_argument("--k", type=number(1, 100, integer=True), default=3, help="sideband orders 1..K (default 3)")
     s.set_defaults(func=cmd_frequencies)
 
     s = sub.add_parser("identify", parents=[common], help="learn a healthy baseline from records (Algs. 2-4)")
-    s.add_argument("--profile", required=True)
+    s.add_argument("--profile", required=True, help="drive profile TOML")
     s.add_argument("--out", required=True, help="model file to write (JSON); one with workbench versions is kept "
                    "unless --replace")
     s.add_argument("--replace", action="store_true", help="overwrite --out even if it holds workbench versions")
@@ -320,10 +320,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_identify)
 
     s = sub.add_parser("diagnose", parents=[common], help="normal / caution / warning for each record")
-    s.add_argument("--model", required=True)
+    s.add_argument("--model", required=True, help="baseline model file (JSON, from identify or learn)")
     s.add_argument("--report", metavar="DIR", help="write an HTML page: decision table, parameter cluster, each "
                    "record's residual spectrum with TH1-TH3 and the fault sidebands (needs the workbench install)")
-    s.add_argument("data", nargs="+")
+    s.add_argument("data", nargs="+", help="records to diagnose (CSV, NPZ, TDMS)")
     s.set_defaults(func=cmd_diagnose)
 
     for module in EXTENSIONS:  # command groups that live with their subsystem

@@ -204,3 +204,26 @@ def test_demo_ends_on_sigterm_and_leaves_no_temp_dir(tmp_path):
     assert proc.returncode == 0, out
     assert "demo: done after" in out
     assert not list(tmp_path.glob("pmsm-demo-*"))
+
+
+def _arguments(parser, path: str):
+    """(command path, argument) for every option and positional of ``parser`` and its subcommands."""
+    import argparse
+
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from _arguments(sub, f"{path} {name}")
+        else:
+            yield path, action
+
+
+def test_every_option_and_positional_has_help():
+    """Walks the whole argparse tree of ``pmsm-agent``: an option without help is a flag a user
+    must guess at."""
+    from agent.cli import build_parser
+
+    seen = list(_arguments(build_parser(), "pmsm-agent"))
+    missing = [f"{path}: {'/'.join(a.option_strings) or a.dest}" for path, a in seen
+               if not (a.help or "").strip()]
+    assert len(seen) > 60 and not missing, missing
