@@ -241,9 +241,12 @@ def cmd_diagnose(args) -> None:
         if r["quality"] != "good":
             lines.append(f"{r['record']}: no diagnosis ({r['quality']}): {r['reason']}")
             continue
-        peaks = ", ".join(f"{p['freq_hz']:.1f} Hz {p['family']} k={p['k']} {p['level']}" for p in r["peaks"])
+        peaks = ", ".join(f"{p['freq_hz']:.1f} Hz {p['family']} k={p['k']} {p['level']}"
+                          + (f" (shared with {', '.join(p['shared_with'])})" if p["shared_with"] else "")
+                          for p in r["peaks"])
         lines.append(f"{r['record']}: {r['state'].upper()} (spectrum {r['spectrum_state']}, cluster "
                      f"{r['cluster_state']}, d2 {r['cluster']['distance2']:.1f}/{r['cluster']['limit']:.1f})"
+                     + (f"\n    verdict: {r['reason']}" if r["verdict"]["family"] else "")
                      + (f"\n    peaks: {peaks}" if peaks else "")
                      + "".join(f"\n    note: {n}" for n in r["notes"]))
     lines += [f"report: {report}"] if report else []

@@ -172,7 +172,8 @@ def test_console_script_no_traceback(tmp_path):
     bad = tmp_path / "p.toml"
     bad.write_text((ROOT / "config/profiles/rig_gear.toml").read_text().replace("[motor]", "[motor]\nfoo = 1"))
     proc = subprocess.run([str(exe), "frequencies", "--profile", str(bad), "--json"], capture_output=True, text=True)
-    assert proc.returncode == 2 and proc.stdout == ""
+    assert proc.returncode == 2 and json.loads(proc.stdout) == {"error": proc.stderr.split("error: ", 1)[1].strip(),
+                                                                 "exit": 2}
     assert "Traceback" not in proc.stderr and "motor.foo" in proc.stderr
     proc = subprocess.run([str(exe), "frequencies", "--profile", GEAR, "--json"], capture_output=True, text=True)
     assert proc.returncode == 0 and "families" in json.loads(proc.stdout)
