@@ -6,10 +6,15 @@ files, from the drive's configured live source. The baseline is written into the
 only when learning completes and every check passes; otherwise the command exits 2 with the
 reason and the library is unchanged:
 
-* not enough healthy evidence (``pipeline.learn_stretches`` stretches over ``pipeline.learn_min_s``);
+* not enough healthy evidence (``pipeline.learn_stretches`` stretches over ``pipeline.learn_min_s``):
+  the refusal says how many more minutes of steady operation, at which load, the pipeline's own
+  rule needs (:attr:`agent.pipeline.DriveMonitor.learn_remaining_s`);
 * speed or load spread beyond the operating-point tolerance (``pipeline.schedule_*_tol``);
 * too many unusable spans (NaN, saturation) or a drive that is not running;
-* a valid baseline already covers the operating point (``--replace`` with its ``--name`` replaces it);
+* a valid baseline already covers the operating point, checked before any learning (from files: their
+  operating point; live: the first span); ``--replace`` replaces the baseline that covers it, whatever
+  its name (a different ``--name`` writes the new one and deletes the old); a ``--name`` that belongs
+  to a baseline at another point is refused;
 * from files, the training-data checks of :func:`agent.training.check_training` (one line naming the
   files): their operating points spread beyond the tolerance, or a file reads as faulty against the
   baseline it replaces (before learning) or against the others (after learning, before the write).
@@ -21,8 +26,11 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import sys
 import time
+
+import numpy as np
 
 from agent.errors import InputError
 
@@ -58,7 +66,7 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
     from agent.runtime.service import build_source, pipeline_config
     from dataclasses import replace as replace_field
 
-    from agent.training import check_training, training_record
+    from agent.training import check_spread, check_training, training_record
 
     drive = _drive(cfg, drive_name)
     p = cfg.pipeline
@@ -66,10 +74,18 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
                                                       p.schedule_hysteresis))
     findings: list[str] = []
     vet = None
-    if files:  # the training-data checks (agent.training): spread and the replaced baseline's reading first
+    if files:  # before any learning: spread, the baseline that covers the point, its reading of the files
         training = _file_records(files, drive.drive_profile)
-        replaced = library.baselines.get(name) if replace and name else None
-        findings += check_training(training, library.schedule, replaced=replaced, replaced_name=f"baseline {name}",
+        check_spread(training, library.schedule)
+        op = {k: float(np.median([r.operating_point[k] for r in training])) for k in ("fe_hz", "load_pct")}
+        covering = library.select(op["fe_hz"], op["load_pct"])
+        if covering is not None and not replace:
+            raise InputError(f"learning refused for drive {drive.name}: baseline {covering} already covers fe "
+                             f"{op['fe_hz']:.2f} Hz, load {op['load_pct']:.1f} % of the files (--replace replaces "
+                             f"it); the library is unchanged")
+        _check_name(library, name, covering)
+        replaced = library.baselines[covering] if covering is not None else None
+        findings += check_training(training, library.schedule, replaced=replaced, replaced_name=f"baseline {covering}",
                                    accept_fault_evidence=accept_fault_evidence)
 
         def vet(baseline):  # then each file against the others, with the learned model, before the write
@@ -84,8 +100,10 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
     def on_event(kind, detail):
         events.append((kind, detail))
         if kind == "learning" and progress is not None:
-            progress(detail.get("progress_pct", 0.0), detail.get("phase", ""))
+            progress(detail.get("progress_pct", 0.0), detail.get("phase", ""), detail.get("remaining_s", 0.0))
 
+    if not files:
+        _check_name(library, name, None)
     pcfg = pipeline_config(cfg)
     monitor = DriveMonitor(drive.name, drive.drive_profile, library, pcfg, on_event=on_event)
     monitor.start_learning(name, replace=replace, vet=vet)
@@ -129,10 +147,15 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
         raise InputError(f"learning refused for drive {drive.name}: {refused[-1]}; the library is unchanged")
     learned = [d for k, d in events if k == "learned"]
     if not learned:
-        pct = monitor.learn_progress_pct
-        raise InputError(f"not enough healthy data for drive {drive.name}: learning reached {pct:.0f} % "
-                         f"(needs {p.learn_windows} spans, then {p.learn_stretches} stretches of {p.stretch_s:g} s "
-                         f"over at least {p.learn_min_s:g} s of steady operation); the library is unchanged")
+        span_s = pcfg.window_s * pcfg.span_windows
+        per_file = "" if not files else (
+            f"; each file gives at most its length less {span_s - pcfg.hop_s:g} s (its first span fills the "
+            f"buffer), and a load or speed move holds {pcfg.alarm.settle_s:g} s more")
+        raise InputError(f"not enough healthy data for drive {drive.name}: "
+                         f"{monitor.learn_needs_text(monitor.learning_point)} (the rule: {p.learn_windows} spans of "
+                         f"{span_s:g} s for the parameters, then {p.learn_stretches} stretches of {p.stretch_s:g} s "
+                         f"over at least {p.learn_min_s / 60:g} min of steady operation, {_minutes(minimum_s(pcfg))} "
+                         f"in all{per_file}); the library is unchanged")
     doc = {"drive": drive.name, **learned[-1], "accepted_fault_evidence": findings}
     if findings:
         from agent.runtime.journal import Journal
@@ -145,14 +168,36 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
     return doc
 
 
+def minimum_s(pcfg) -> float:
+    """Seconds of steady operation a commissioning needs at least (one uninterrupted stream): the
+    pass-1 spans, then whole stretches until ``learn_stretches`` and ``learn_min_s``."""
+    stretch_s = pcfg.alarm.stretch_s
+    stretches = max(pcfg.learn_stretches, math.ceil(pcfg.learn_min_s / stretch_s - 1e-9))
+    return pcfg.learn_windows * pcfg.window_s * pcfg.span_windows + stretches * stretch_s
+
+
+def _minutes(seconds: float) -> str:
+    return f"{seconds / 60:.1f} min" if seconds >= 90 else f"{seconds:g} s"
+
+
+def _check_name(library, name: str | None, covering: str | None) -> None:
+    """``--name`` must not be a baseline at another operating point (it would be overwritten)."""
+    if name is not None and name in library.baselines and name != covering:
+        op = library.baselines[name].operating_point
+        raise InputError(f"--name {name}: a baseline of that name covers another operating point (fe "
+                         f"{op['fe_hz']:.2f} Hz, load {op['load_pct']:.1f} %); choose another name; the library is "
+                         f"unchanged")
+
+
 def cmd_learn(args) -> None:
     from agent.cli import warn_fault_evidence
     from agent.runtime.config import check_config
 
     cfg = check_config(args.config)
 
-    def progress(pct, phase):
-        log.info("learning %s: %.0f %%%s", args.drive, pct, f" ({phase})" if phase else "")
+    def progress(pct, phase, remaining_s):
+        log.info("learning %s: %.0f %%%s, about %s more of steady operation", args.drive, pct,
+                 f" ({phase})" if phase else "", _minutes(remaining_s))
 
     doc = learn(cfg, args.drive, args.data, name=args.name, replace=args.replace, progress=progress,
                 max_seconds=args.max_seconds, accept_fault_evidence=args.accept_fault_evidence)
