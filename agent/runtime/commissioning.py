@@ -105,6 +105,7 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
     if not files:
         _check_name(library, name, None)
     pcfg = pipeline_config(cfg)
+    lengths: list[float] = []  #: s, the files learned from
     monitor = DriveMonitor(drive.name, drive.drive_profile, library, pcfg, on_event=on_event)
     monitor.start_learning(name, replace=replace, vet=vet)
     if files:
@@ -115,6 +116,7 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
         block = max(1, int(round(0.1 * rate)))
         for path in files:
             rec = load_record(path, drive.drive_profile)
+            lengths.append(rec.n / rate)
             for start in range(0, rec.n - block + 1, block):
                 cut = slice(start, start + block)
                 monitor.process(Block(drive.name, rate, rec.v_abc[:, cut], rec.i_abc[:, cut], first + start, 0,
@@ -148,9 +150,12 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
     learned = [d for k, d in events if k == "learned"]
     if not learned:
         span_s = pcfg.window_s * pcfg.span_windows
+        usable = float(np.mean(lengths)) - (span_s - pcfg.hop_s) if lengths else 0.0
         per_file = "" if not files else (
             f"; each file gives at most its length less {span_s - pcfg.hop_s:g} s (its first span fills the "
-            f"buffer), and a load or speed move holds {pcfg.alarm.settle_s:g} s more")
+            f"buffer)" + (f": about {_count(math.ceil(monitor.learn_remaining_s / usable - 1e-9), 'more file')} "
+                          f"of {np.mean(lengths):.0f} s" if usable > 0 else "")
+            + f", and a load or speed move holds {pcfg.alarm.settle_s:g} s more")
         raise InputError(f"not enough healthy data for drive {drive.name}: "
                          f"{monitor.learn_needs_text(monitor.learning_point)} (the rule: {p.learn_windows} spans of "
                          f"{span_s:g} s for the parameters, then {p.learn_stretches} stretches of {p.stretch_s:g} s "
@@ -174,6 +179,10 @@ def minimum_s(pcfg) -> float:
     stretch_s = pcfg.alarm.stretch_s
     stretches = max(pcfg.learn_stretches, math.ceil(pcfg.learn_min_s / stretch_s - 1e-9))
     return pcfg.learn_windows * pcfg.window_s * pcfg.span_windows + stretches * stretch_s
+
+
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}{'' if n == 1 else 's'}"
 
 
 def _minutes(seconds: float) -> str:
