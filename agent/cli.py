@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from agent.cliargs import Parser, fraction, number, quiet_broken_pipe
+from agent.cliargs import Parser, UsageError, fraction, number, quiet_broken_pipe
 from agent.errors import InputError
 from agent.evidence import FULL_EVIDENCE_STRETCHES, AlarmConfig
 
@@ -56,6 +56,18 @@ def _load_records(paths, profile, min_samples: int = 0):
     from agent.records import load_record
 
     return [load_record(p, profile, min_samples=min_samples) for p in paths]
+
+
+def distinct_records(paths: list[str]) -> list[str]:
+    """Training records, each once: a record given twice would count as two healthy records and
+    narrow the learned spread (``identify``, ``learn``, ``add-effect``)."""
+    seen: dict[Path, str] = {}
+    for p in paths:
+        key = Path(p).resolve()
+        if key in seen:
+            raise InputError(f"{p}: given twice (as {seen[key]}): a record counted twice narrows the healthy spread")
+        seen[key] = p
+    return paths
 
 
 def _parse_effects(items: list[str] | None) -> dict[str, float | None]:
@@ -148,7 +160,8 @@ def cmd_identify(args) -> None:
     if len(args.data) < 4:
         raise InputError(f"identify needs at least 4 healthy records (the parameter cluster's region), got "
                          f"{len(args.data)}")
-    recs = _load_records(args.data, profile, min_samples=int(round(args.window * profile.sampling.rate_hz)))
+    recs = _load_records(distinct_records(args.data), profile,
+                         min_samples=int(round(args.window * profile.sampling.rate_hz)))
     t0 = time.perf_counter()
     base = identify_baseline(recs, profile, form=args.form, robust=args.robust, window_s=args.window,
                              confidence=args.confidence, region=args.region, spectrum_rule=args.spectrum_rule,
@@ -347,7 +360,13 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(argv: list[str] | None) -> int:
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except UsageError as err:  # one line on stderr already; with --json also the error object
+        if "--json" in (sys.argv[1:] if argv is None else argv):
+            json.dump({"error": err.message, "exit": 2}, sys.stdout)
+            sys.stdout.write("\n")
+        raise
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, stream=sys.stderr,
                         format="%(levelname)s %(name)s: %(message)s")
     try:

@@ -68,7 +68,10 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
 
     from agent.training import check_spread, check_training, training_record
 
+    from agent.cli import distinct_records
+
     drive = _drive(cfg, drive_name)
+    distinct_records(files)
     p = cfg.pipeline
     library = ModelLibrary(cfg.library.path, Schedule(p.schedule_fe_tol_hz, p.schedule_load_tol_pct,
                                                       p.schedule_hysteresis))
@@ -106,6 +109,7 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
         _check_name(library, name, None)
     pcfg = pipeline_config(cfg)
     lengths: list[float] = []  #: s, the files learned from
+    seen: list = []  #: every status of the learning (why it made no progress)
     monitor = DriveMonitor(drive.name, drive.drive_profile, library, pcfg, on_event=on_event)
     monitor.start_learning(name, replace=replace, vet=vet)
     if files:
@@ -119,7 +123,7 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
             lengths.append(rec.n / rate)
             for start in range(0, rec.n - block + 1, block):
                 cut = slice(start, start + block)
-                monitor.process(Block(drive.name, rate, rec.v_abc[:, cut], rec.i_abc[:, cut], first + start, 0,
+                seen += monitor.process(Block(drive.name, rate, rec.v_abc[:, cut], rec.i_abc[:, cut], first + start, 0,
                                       None if rec.theta_e is None else rec.theta_e[cut],
                                       None if rec.omega_e is None else rec.omega_e[cut]))
                 if not monitor.learning:
@@ -139,7 +143,7 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
             while monitor.learning and (t_end is None or time.monotonic() < t_end):
                 blk = source.read(timeout=0.5)
                 if blk is not None:
-                    monitor.process(blk)
+                    seen += monitor.process(blk)
                 elif getattr(source, "finished", False):
                     break
         finally:
@@ -148,6 +152,10 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
     if refused:
         raise InputError(f"learning refused for drive {drive.name}: {refused[-1]}; the library is unchanged")
     learned = [d for k, d in events if k == "learned"]
+    idle = [st.extra["reason"] for st in seen if str(st.extra.get("reason") or "").startswith("not running")]
+    if not learned and seen and len(idle) == len(seen):
+        raise InputError(f"nothing to learn for drive {drive.name}: the drive was not running in any span "
+                         f"({idle[-1]}); the library is unchanged")
     if not learned:
         span_s = pcfg.window_s * pcfg.span_windows
         usable = float(np.mean(lengths)) - (span_s - pcfg.hop_s) if lengths else 0.0
@@ -156,8 +164,11 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
             f"buffer)" + (f": about {_count(math.ceil(monitor.learn_remaining_s / usable - 1e-9), 'more file')} "
                           f"of {np.mean(lengths):.0f} s" if usable > 0 else "")
             + f", and a load or speed move holds {pcfg.alarm.settle_s:g} s more")
+        short = [f for f, n in zip(files, lengths) if n < span_s]
+        per_file += f"; shorter than one span ({span_s:g} s), so nothing learned from: {', '.join(short)}" if short else ""
+        stopped = f"; the drive was not running in {len(idle)} of {len(seen)} spans" if idle else ""
         raise InputError(f"not enough healthy data for drive {drive.name}: "
-                         f"{monitor.learn_needs_text(monitor.learning_point)} (the rule: {p.learn_windows} spans of "
+                         f"{monitor.learn_needs_text(monitor.learning_point)}{stopped} (the rule: {p.learn_windows} spans of "
                          f"{span_s:g} s for the parameters, then {p.learn_stretches} stretches of {p.stretch_s:g} s "
                          f"over at least {p.learn_min_s / 60:g} min of steady operation, {_minutes(minimum_s(pcfg))} "
                          f"in all{per_file}); the library is unchanged")
@@ -223,6 +234,7 @@ def cmd_learn(args) -> None:
 def add_commands(sub, common) -> None:
     """Add ``learn`` to the ``pmsm-agent`` subparsers."""
     from agent.cli import accept_fault_evidence_flag
+    from agent.cliargs import number
 
     s = sub.add_parser("learn", parents=[common], help="commission a baseline for one drive (from files or the live source)")
     s.add_argument("--config", required=True, metavar="FILE", help="agent config TOML (the drive, its library)")
@@ -230,7 +242,7 @@ def add_commands(sub, common) -> None:
     s.add_argument("--name", help="baseline name (default: <drive>_<fe>hz_<load>pct)")
     s.add_argument("--replace", action="store_true",
                    help="replace the baseline of this --name if it covers the operating point (never implicit)")
-    s.add_argument("--max-seconds", type=float, default=None,
+    s.add_argument("--max-seconds", type=number(0, None, low_open=True, unit="s"), default=None,
                    help="live source only: give up after this many seconds of wall time")
     accept_fault_evidence_flag(s)
     s.add_argument("data", nargs="*", metavar="REC", help="recorded files (CSV/NPZ/TDMS); none: the live source")

@@ -279,7 +279,7 @@ class Service:
                 self._publish(status)
                 if self._auto_learn_due(d, status):
                     d.auto_learned = True
-                    d.monitor.start_learning(f"{d.name}_{status.fe_hz:.0f}hz_{status.load_pct:.0f}pct")
+                    d.monitor.start_learning()  # named by the learned operating point
         return busy
 
     def status_line(self, period_s: float) -> str:
@@ -312,9 +312,8 @@ class Service:
             return
         for cmd in self.plc.commands():
             if cmd.kind == "relearn" and cmd.drive in self.drives:
-                mon = self.drives[cmd.drive].monitor
-                st = mon.status
-                mon.start_learning(f"{cmd.drive}_{st.fe_hz:.0f}hz_{st.load_pct:.0f}pct")
+                # a new baseline for the point the drive runs at: it replaces the one covering it
+                self.drives[cmd.drive].monitor.start_learning(replace=True)
                 self.journal.record("learning", cmd.drive, detail={"event": "relearn requested by the PLC"})
 
     def run(self, max_seconds: float | None = None) -> int:

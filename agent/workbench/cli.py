@@ -132,12 +132,13 @@ def cmd_explain(args) -> None:
 
 
 def cmd_add_effect(args) -> None:
-    from agent.cli import warn_fault_evidence
+    from agent.cli import distinct_records, warn_fault_evidence
     from agent.effects import get, params_text
     from agent.modelfile import save_baseline
     from agent.workbench.explain import add_effects
 
     effects = [get(e).id for e in args.effect]
+    distinct_records(args.data)
     if Path(args.out).exists():
         raise InputError(f"--out {args.out}: exists; a model version is never overwritten (choose a new file)")
     base, recs, preps = _load(args, args.model)
