@@ -511,7 +511,7 @@ class DriveMonitor:
                                        "remaining_s": self.learn_remaining_s})
         return self._set(quality="learning", state="normal", spectrum_state="normal", cluster_state="normal",
                          fe_hz=op["fe_hz"], load_pct=op["load_pct"], peaks=[], learn_progress_pct=pct,
-                         reason=f"learning {self._learn_name or 'a baseline'}: {self.learn_needs_text(op)}")
+                         reason=self.learn_needs_text(op) + (f" for {self._learn_name}" if self._learn_name else ""))
 
     def _covered_text(self, covering: str, op: dict) -> str:
         return (f"baseline {covering} already covers fe {op['fe_hz']:.2f} Hz, load {op['load_pct']:.1f} % "

@@ -102,3 +102,16 @@ def test_the_workbench_walkthrough_finds_the_offset_it_hides(fresh):
     first = next(line for line in r.stdout.splitlines() if "explains" in line)
     assert first.split()[0] == "current_offset" and "SIGNIFICANT" in first, r.stdout[-2000:]
     assert (fresh / "runs" / "report" / "index.html").is_file() and (fresh / "runs" / "m2.json").is_file()
+
+
+def test_the_demo_prints_the_load_it_runs_at():
+    """``pmsm-agent demo``: the baseline it learns is named and printed at the simulated drive's load
+    (config/agent.toml, load as torque over rated torque), within 5 %-points."""
+    from agent.demo import DEFAULT_CONFIG, run_demo
+
+    lines: list[str] = []
+    run_demo(seconds=60.0, say=lines.append)
+    text = "\n".join(lines)
+    assert "baseline learned at fe" in text, text
+    asked = float(re.search(r"^load_pct = (\S+)", DEFAULT_CONFIG.read_text(), flags=re.M).group(1))
+    assert_loads_match(text, {asked})
