@@ -217,7 +217,8 @@ class BaselineBuilder:
         # alarm evidence (agent.evidence): per stretch its windows' feature values, cluster point, load
         self.stretch_windows: list[np.ndarray] = []
         self.stretch_cluster: list[np.ndarray] = []
-        self.stretch_load: list[float] = []
+        self.stretch_load: list[float] = []  #: % of rated torque (the operating point's spread)
+        self.stretch_power: list[float] = []  #: input power, % of rated (what B_GT moves with)
         self.stretch_s = 0.0
         self.training: list[TrainingRecord] = []  #: per record of pass 2 (add_spectra)
         self.consecutive = False  #: stretches follow each other in one stream (streaming learning)
@@ -269,15 +270,16 @@ class BaselineBuilder:
         m, op = self.model(), operating_point(sig, self.profile)
         point = cluster_point(sig, self.profile, m.form, m.extra_q, self.settings["prefilter_hz"])
         y = feature_values(freqs, amp, self.profile, op["fe_hz"], self.features(), SEARCH_BINS)
-        self.add_stretch(y, point, op["load_pct"], sig.n * sig.ts)
+        self.add_stretch(y, point, op["load_pct"], sig.n * sig.ts, op["input_power_pct"])
         self.training.append(TrainingRecord(source, op, sig, amp, point))
 
-    def add_stretch(self, window_y: np.ndarray, point, load_pct: float, seconds: float) -> None:
+    def add_stretch(self, window_y: np.ndarray, point, load_pct: float, seconds: float, power_pct: float) -> None:
         """One stretch of healthy operation for the alarm evidence: its windows' feature values
-        (m, F), its mean cluster point and load, its length (s)."""
+        (m, F), its mean cluster point, load and input power (% of rated), its length (s)."""
         self.stretch_windows.append(np.atleast_2d(window_y))
         self.stretch_cluster.append(np.asarray(point, dtype=float))
         self.stretch_load.append(float(load_pct))
+        self.stretch_power.append(float(power_pct))
         self.stretch_s = seconds if not self.stretch_s else min(self.stretch_s, seconds)
 
     def add_window_spectra(self, freqs: np.ndarray, amp: np.ndarray) -> None:
@@ -307,7 +309,7 @@ class BaselineBuilder:
         if len(self.stretch_windows) < 4:
             return None
         return EvidenceStats.fit(self.features(), self.stretch_windows, np.array(self.stretch_cluster),
-                                 np.array(self.stretch_load), self.stretch_s, self.profile, self.consecutive)
+                                 np.array(self.stretch_power), self.stretch_s, self.profile, self.consecutive)
 
 
 def identify_baseline(records: list[Record], profile: DriveProfile, *, refine: bool = False, progress=None,

@@ -216,7 +216,7 @@ def record_evidence(baseline: Baseline, freqs: np.ndarray, amp: np.ndarray, poin
     out = {f.name: {"families": list(f.families), "stretch_z": round(float(a), 3), "window_z": round(float(b), 3),
                     "gross_threshold": round(float(g), 3)}
            for f, a, b, g in zip(ev.features, stretch, window, gross)}
-    out["cluster"] = {"stretch_z": round(ev.cluster_z(point, op["load_pct"]), 3)}
+    out["cluster"] = {"stretch_z": round(ev.cluster_z(point, op["input_power_pct"]), 3)}
     return out
 
 

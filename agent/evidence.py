@@ -250,7 +250,7 @@ class EvidenceStats:
     rho: float  #: lag-1 correlation of consecutive stretches (0 when stretches are separate records)
     n: int  #: independent stretches
     stretch_s: float  #: s of operation per stretch
-    load_pct: float  #: load at which the cluster is centred, %
+    load_pct: float  #: input power at which the cluster is centred, % of rated (JSON key kept: ``load_pct``)
     b_gt_per_pct: float  #: physical slope dB_GT/dload, N m s/rad per %-point
     cluster_mean: np.ndarray  #: (2,) load-adjusted (Ts/Lq, B_GT)
     cluster_cov: np.ndarray  #: (2, 2) between stretches
@@ -258,10 +258,12 @@ class EvidenceStats:
 
     @classmethod
     def fit(cls, features: list[Feature], windows: list[np.ndarray], stretch_cluster: np.ndarray,
-            stretch_load: np.ndarray, stretch_s: float, profile, consecutive: bool) -> "EvidenceStats":
+            stretch_power: np.ndarray, stretch_s: float, profile, consecutive: bool) -> "EvidenceStats":
         """From the windows' feature values of each stretch (a list of (m_i, F), in time order), the
-        cluster points (n, 2) and loads (n,) of the stretches; ``consecutive``: the stretches follow
-        each other in one stream (their lag-1 correlation is estimated)."""
+        cluster points (n, 2) and input powers (n,, % of rated: B_GT is the input power's torque over
+        speed, copper loss included, so its load share is removed on that measure, not on the
+        torque reading) of the stretches; ``consecutive``: the stretches follow each other in one
+        stream (their lag-1 correlation is estimated)."""
         n = len(windows)
         if n < 4:
             raise ValueError(f"need at least 4 independent stretches, got {n}")
@@ -277,10 +279,10 @@ class EvidenceStats:
             rho = float(np.clip(np.mean(np.sum(c[1:] * c[:-1], 0) / np.maximum(np.sum(c * c, 0), 1e-30)), 0.0, 0.9))
         omega_m = 2 * math.pi * profile.motor.rated_speed_rpm / 60.0
         slope = profile.motor.rated_power_w / 100.0 / omega_m ** 2
-        load0 = float(np.median(stretch_load))
+        load0 = float(np.median(stretch_power))
 
         sc = np.array(stretch_cluster, dtype=float).copy()
-        sc[:, 1] -= slope * (np.asarray(stretch_load) - load0)
+        sc[:, 1] -= slope * (np.asarray(stretch_power) - load0)
         c_mean = sc.mean(axis=0)
         c_cov = np.cov(sc, rowvar=False) + np.eye(2) * 1e-12 * (1.0 + c_mean ** 2)
         return cls(features, mean, np.maximum(sd, 1e-6), np.maximum(window_sd, 1e-6), rho, n, float(stretch_s),
@@ -302,11 +304,12 @@ class EvidenceStats:
         """z of a single window: in prediction sds of single windows, sd sqrt(1 + 1/n) wider."""
         return (np.asarray(y) - self.mean) / (self.window_sd * math.sqrt(1 + 1 / self.n))
 
-    def cluster_z(self, point, load_pct: float) -> float:
+    def cluster_z(self, point, power_pct: float) -> float:
         """Normal score of the load-adjusted cluster point's squared Mahalanobis distance
-        (chi-square, 2 dof, widened by 1 + 1/n for the estimated centre)."""
+        (chi-square, 2 dof, widened by 1 + 1/n for the estimated centre); ``power_pct``: the input
+        power, % of rated (``operating_point``'s ``input_power_pct``)."""
         p = np.asarray(point, dtype=float).copy()
-        p[1] -= self.b_gt_per_pct * (load_pct - self.load_pct)
+        p[1] -= self.b_gt_per_pct * (power_pct - self.load_pct)
         d = p - self.cluster_mean
         d2 = float(d @ np.linalg.solve(self.cluster_cov, d)) / (1 + 1 / self.n)
         tail = math.exp(-0.5 * min(d2, 1400.0))
@@ -397,16 +400,16 @@ class _Stretch:
 
     def __init__(self):
         self.y, self.hops, self.seconds = 0.0, 0, 0.0
-        self.cluster = np.zeros((2, 4))  #: rows clean, acquiring: sum of Ts/Lq, B_GT, load %; count
+        self.cluster = np.zeros((2, 4))  #: rows clean, acquiring: sum of Ts/Lq, B_GT, input power %; count
 
-    def add(self, y, point, load_pct: float, hop_s: float, clean: bool = True) -> None:
+    def add(self, y, point, power_pct: float, hop_s: float, clean: bool = True) -> None:
         self.y = self.y + np.asarray(y, dtype=float)
-        self.cluster[0 if clean else 1] += (*point, load_pct, 1.0)
+        self.cluster[0 if clean else 1] += (*point, power_pct, 1.0)
         self.hops += 1
         self.seconds += hop_s
 
     def cluster_mean(self) -> tuple[np.ndarray, float]:
-        """(mean cluster point, mean load %) of the clean spans, else of the acquiring ones."""
+        """(mean cluster point, mean input power %) of the clean spans, else of the acquiring ones."""
         row = self.cluster[0] if self.cluster[0, 3] else self.cluster[1]
         return row[:2] / row[3], row[2] / row[3]
 
@@ -493,11 +496,12 @@ class AlarmLogic:
             self._gross_for, self._gross_th = stats, self.config.gross_thresholds(stats)
         return self._gross_th
 
-    def step(self, stats: EvidenceStats, profile, window_y: np.ndarray, cluster_point, load_pct: float,
+    def step(self, stats: EvidenceStats, profile, window_y: np.ndarray, cluster_point, power_pct: float,
              fe_hz: float, hop_s: float) -> Verdict:
         """One assessed hop, after :meth:`observe` saw its reading: ``window_y`` (F,) the newest
-        window's feature values, the span's cluster point and operating point (``profile``: the
-        drive's, for the lines' frequencies in the reason)."""
+        window's feature values, the span's cluster point, its input power (% of rated, for the
+        cluster's load share) and fe (``profile``: the drive's, for the lines' frequencies in the
+        reason)."""
         cfg = self.config
         if self._settling:
             return Verdict(self._last.state, self._last.spectrum_state, self._last.cluster_state,
@@ -518,7 +522,7 @@ class AlarmLogic:
 
         # slow path: a CUSUM step per completed stretch
         st = self._stretch
-        st.add(window_y, cluster_point, load_pct, hop_s, clean=not self._acquiring)
+        st.add(window_y, cluster_point, power_pct, hop_s, clean=not self._acquiring)
         closed = st.seconds >= stretch_s - 1e-9
         if closed:
             z = np.append(stats.stretch_z(st.y / st.hops), stats.cluster_z(*st.cluster_mean()))

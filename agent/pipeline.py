@@ -88,8 +88,9 @@ class PipelineConfig:
 
 
 def _learn_stretch() -> dict:
-    """An empty commissioning stretch: per hop the features, cluster point and load, and its length, s."""
-    return {"y": [], "points": [], "loads": [], "seconds": 0.0}
+    """An empty commissioning stretch: per hop the features, cluster point, load and input power, and its
+    length, s."""
+    return {"y": [], "points": [], "loads": [], "powers": [], "seconds": 0.0}
 
 
 class DriveMonitor:
@@ -277,7 +278,7 @@ class DriveMonitor:
         point = np.array([self._ts_over_lq(name), fit_torque(sig, self.profile)[1]])
         freqs = base.thresholds.freqs_hz
         y = feature_values(freqs, np.array(spectra), self.profile, op["fe_hz"], base.evidence.features, SEARCH_BINS)
-        v = self.alarms.step(base.evidence, self.profile, y[-1], point, op["load_pct"], op["fe_hz"],
+        v = self.alarms.step(base.evidence, self.profile, y[-1], point, op["input_power_pct"], op["fe_hz"],
                              self.config.hop_s)
         d = decide(base, freqs, np.array(spectra), point, op, self.drive)  # the paper's rule: peaks for display
         return self._set(quality="good", model=name, state=self._hold(v.state), spectrum_state=v.spectrum_state,
@@ -484,11 +485,12 @@ class DriveMonitor:
         st["points"].append(cluster_point(sig, self.profile, model.form, model.extra_q,
                                           b.settings["prefilter_hz"]))
         st["loads"].append(op["load_pct"])
+        st["powers"].append(op["input_power_pct"])
         st["seconds"] += hop_s
         self._learn_seconds += hop_s
         if st["seconds"] >= c.alarm.stretch_s - 1e-9:
             b.add_stretch(np.array(st["y"]), np.mean(st["points"], axis=0), float(np.mean(st["loads"])),
-                          st["seconds"])
+                          st["seconds"], float(np.mean(st["powers"])))
             self._learn_stretch = _learn_stretch()
             loads = np.array(b.stretch_load)
             fes = np.array([f.operating_point["fe_hz"] for f in b.fits])
