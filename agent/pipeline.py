@@ -81,10 +81,24 @@ class PipelineConfig:
     max_voltage_v: float = float("inf")
     alarm: AlarmConfig = AlarmConfig()  #: the alarm logic (agent.evidence)
 
+    @property
+    def learn_total_s(self) -> float:
+        """Seconds of steady operation a commissioning needs in one uninterrupted stream: the pass-1
+        spans, then whole stretches until ``learn_stretches`` and ``learn_min_s``
+        (:attr:`DriveMonitor.learn_remaining_s` at the start)."""
+        stretches = max(self.learn_stretches, math.ceil(self.learn_min_s / self.alarm.stretch_s - 1e-9))
+        return self.learn_windows * self.window_s * self.span_windows + stretches * self.alarm.stretch_s
+
     def __post_init__(self):
         ratio = self.window_s / self.hop_s
         if self.hop_s <= 0 or abs(ratio - round(ratio)) > 1e-9 or self.span_windows < 1:
             raise ValueError("pipeline: hop_s must divide window_s, span_windows >= 1")
+
+
+def covered_text(covering: str, op: dict) -> str:
+    """Why learning at ``op`` is refused without ``replace``."""
+    return (f"baseline {covering} already covers fe {op['fe_hz']:.2f} Hz, load {op['load_pct']:.1f} % "
+            f"(--replace replaces it)")
 
 
 def _learn_stretch() -> dict:
@@ -459,7 +473,7 @@ class DriveMonitor:
             self._learn_op = op
             covering = self.library.select(op["fe_hz"], op["load_pct"])
             if covering is not None and not self._learn_replace:
-                return self._refuse(self._covered_text(covering, op), op)
+                return self._refuse(covered_text(covering, op), op)
         if len(b.fits) < c.learn_windows:
             if self._samples - self._learn_mark >= self.n_span:  # non-overlapping spans
                 self._learn_mark = self._samples
@@ -515,10 +529,6 @@ class DriveMonitor:
                          fe_hz=op["fe_hz"], load_pct=op["load_pct"], peaks=[], learn_progress_pct=pct,
                          reason=self.learn_needs_text(op) + (f" for {self._learn_name}" if self._learn_name else ""))
 
-    def _covered_text(self, covering: str, op: dict) -> str:
-        return (f"baseline {covering} already covers fe {op['fe_hz']:.2f} Hz, load {op['load_pct']:.1f} % "
-                f"(--replace replaces it)")
-
     def _finish_learning(self, op: dict) -> DriveStatus:
         b = self._builder
         j, t = learning_shift(np.array([w.mean(axis=0) for w in b.stretch_windows]))
@@ -531,7 +541,7 @@ class DriveMonitor:
             self._learn_name = f"{self.drive}_{bop['fe_hz']:.0f}hz_{bop['load_pct']:.0f}pct"
         covering = self.library.select(bop["fe_hz"], bop["load_pct"])
         if covering is not None and not self._learn_replace:
-            return self._refuse(self._covered_text(covering, bop), op)
+            return self._refuse(covered_text(covering, bop), op)
         if self._learn_vet is not None:
             self._learn_vet(baseline)
         path = self.library.add(self._learn_name, baseline)

@@ -146,7 +146,7 @@ def test_the_progress_says_how_many_minutes_remain():
 
     mon = DriveMonitor("d1", load_profile(PROFILE_PATH), ModelLibrary(tempfile.mkdtemp()), PipelineConfig())
     mon.start_learning()
-    assert mon.learn_remaining_s == 22 * 60.0
+    assert mon.learn_remaining_s == PipelineConfig().learn_total_s == 22 * 60.0
     assert mon.learn_needs_text({"fe_hz": 100.0, "load_pct": 92.0}) == (
         "learning reached 0 %: about 22 more minutes of steady operation at 92 % load (fe 100.0 Hz)")
 

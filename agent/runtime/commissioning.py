@@ -61,14 +61,13 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
           progress=None, max_seconds: float | None = None, accept_fault_evidence: bool = False) -> dict:
     """Learn a baseline for ``drive_name``; returns what was learned, raises InputError with the
     reason when learning refuses or the data runs out (``progress(pct, text)`` as it goes)."""
-    from agent.library import ModelLibrary, Schedule
-    from agent.pipeline import DriveMonitor
-    from agent.runtime.service import build_source, pipeline_config
     from dataclasses import replace as replace_field
 
-    from agent.training import check_spread, check_training, training_record
-
     from agent.cli import distinct_records
+    from agent.library import ModelLibrary, Schedule
+    from agent.pipeline import DriveMonitor, covered_text
+    from agent.runtime.service import build_source, pipeline_config
+    from agent.training import check_spread, check_training, training_record
 
     drive = _drive(cfg, drive_name)
     distinct_records(files)
@@ -83,9 +82,8 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
         op = {k: float(np.median([r.operating_point[k] for r in training])) for k in ("fe_hz", "load_pct")}
         covering = library.select(op["fe_hz"], op["load_pct"])
         if covering is not None and not replace:
-            raise InputError(f"learning refused for drive {drive.name}: baseline {covering} already covers fe "
-                             f"{op['fe_hz']:.2f} Hz, load {op['load_pct']:.1f} % of the files (--replace replaces "
-                             f"it); the library is unchanged")
+            raise InputError(f"learning refused for drive {drive.name}: {covered_text(covering, op)}; the library "
+                             f"is unchanged")
         _check_name(library, name, covering)
         replaced = library.baselines[covering] if covering is not None else None
         findings += check_training(training, library.schedule, replaced=replaced, replaced_name=f"baseline {covering}",
@@ -170,7 +168,7 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
         raise InputError(f"not enough healthy data for drive {drive.name}: "
                          f"{monitor.learn_needs_text(monitor.learning_point)}{stopped} (the rule: {p.learn_windows} spans of "
                          f"{span_s:g} s for the parameters, then {p.learn_stretches} stretches of {p.stretch_s:g} s "
-                         f"over at least {p.learn_min_s / 60:g} min of steady operation, {_minutes(minimum_s(pcfg))} "
+                         f"over at least {p.learn_min_s / 60:g} min of steady operation, {_minutes(pcfg.learn_total_s)} "
                          f"in all{per_file}); the library is unchanged")
     doc = {"drive": drive.name, **learned[-1], "accepted_fault_evidence": findings}
     if findings:
@@ -182,14 +180,6 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
                 "msg": f"learned {doc['name']} from records with fault evidence (--accept-fault-evidence)",
                 "records": findings})
     return doc
-
-
-def minimum_s(pcfg) -> float:
-    """Seconds of steady operation a commissioning needs at least (one uninterrupted stream): the
-    pass-1 spans, then whole stretches until ``learn_stretches`` and ``learn_min_s``."""
-    stretch_s = pcfg.alarm.stretch_s
-    stretches = max(pcfg.learn_stretches, math.ceil(pcfg.learn_min_s / stretch_s - 1e-9))
-    return pcfg.learn_windows * pcfg.window_s * pcfg.span_windows + stretches * stretch_s
 
 
 def _count(n: int, noun: str) -> str:
