@@ -205,8 +205,8 @@ def test_learn_names_the_files_of_each_operating_point(files, tmp_path, capsys):
     rc, out, err = run(capsys, "learn", "--config", cfg, "--drive", "drive1", *files["healthy"][:3],
                        *files["spread"])
     assert rc == 2 and len(err.strip().splitlines()) == 1, err
-    assert re.search(r"spread over load .*: load 6\d\.\d(-6\d\.\d)? %: \S*x60_0\.npz, \S*x60_2\.npz; "
-                     r"load 9\d\.\d-9\d\.\d %: [^;]*h80_0\.npz.*split them by operating point", err), err
+    assert re.search(r"spread over load .*: load (5[5-9]|6[0-5])\.\d(-\d\d\.\d)? %: \S*x60_0\.npz, \S*x60_2\.npz; "
+                     r"load (7[5-9]|8[0-5])\.\d-\d\d\.\d %: [^;]*h80_0\.npz.*split them by operating point", err), err
     assert _library_state(tmp_path) == {}
 
 
