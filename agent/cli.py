@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from agent.cliargs import Parser, fraction, number, quiet_broken_pipe
+from agent.cliargs import Parser, UsageError, fraction, number, quiet_broken_pipe
 from agent.errors import InputError
 from agent.evidence import FULL_EVIDENCE_STRETCHES, AlarmConfig
 
@@ -57,6 +57,18 @@ def _load_records(paths, profile, min_samples: int = 0):
     from agent.records import load_record
 
     return [load_record(p, profile, min_samples=min_samples) for p in paths]
+
+
+def distinct_records(paths: list[str]) -> list[str]:
+    """Training records, each once: a record given twice would count as two healthy records and
+    narrow the learned spread (``identify``, ``learn``, ``add-effect``)."""
+    seen: dict[Path, str] = {}
+    for p in paths:
+        key = Path(p).resolve()
+        if key in seen:
+            raise InputError(f"{p}: given twice (as {seen[key]}): a record counted twice narrows the healthy spread")
+        seen[key] = p
+    return paths
 
 
 def _parse_effects(items: list[str] | None) -> dict[str, float | None]:
@@ -149,7 +161,8 @@ def cmd_identify(args) -> None:
     if len(args.data) < 4:
         raise InputError(f"identify needs at least 4 healthy records (the parameter cluster's region), got "
                          f"{len(args.data)}")
-    recs = _load_records(args.data, profile, min_samples=int(round(args.window * profile.sampling.rate_hz)))
+    recs = _load_records(distinct_records(args.data), profile,
+                         min_samples=int(round(args.window * profile.sampling.rate_hz)))
     t0 = time.perf_counter()
     base = identify_baseline(recs, profile, form=args.form, robust=args.robust, window_s=args.window,
                              confidence=args.confidence, region=args.region, spectrum_rule=args.spectrum_rule,
@@ -247,9 +260,12 @@ def cmd_diagnose(args) -> None:
         if r["quality"] != "good":
             lines.append(f"{r['record']}: no diagnosis ({r['quality']}): {r['reason']}")
             continue
-        peaks = ", ".join(f"{p['freq_hz']:.1f} Hz {p['family']} k={p['k']} {p['level']}" for p in r["peaks"])
+        peaks = ", ".join(f"{p['freq_hz']:.1f} Hz {p['family']} k={p['k']} {p['level']}"
+                          + (f" (shared with {', '.join(p['shared_with'])})" if p["shared_with"] else "")
+                          for p in r["peaks"])
         lines.append(f"{r['record']}: {r['state'].upper()} (spectrum {r['spectrum_state']}, cluster "
                      f"{r['cluster_state']}, d2 {r['cluster']['distance2']:.1f}/{r['cluster']['limit']:.1f})"
+                     + (f"\n    verdict: {r['reason']}" if r["verdict"]["family"] else "")
                      + (f"\n    peaks: {peaks}" if peaks else "")
                      + "".join(f"\n    note: {n}" for n in r["notes"]))
     lines += [f"report: {report}"] if report else []
@@ -295,14 +311,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_simulate)
 
     s = sub.add_parser("frequencies", parents=[common], help="fault characteristic frequencies (eqs. 19-22)")
-    s.add_argument("--profile", required=True)
+    s.add_argument("--profile", required=True, help="drive profile TOML")
     s.add_argument("--fe", type=number(0, 1e5, low_open=True, unit="Hz"),
                    help="electrical frequency, Hz (default: rated speed)")
     s.add_argument("--k", type=number(1, 100, integer=True), default=3, help="sideband orders 1..K (default 3)")
     s.set_defaults(func=cmd_frequencies)
 
     s = sub.add_parser("identify", parents=[common], help="learn a healthy baseline from records (Algs. 2-4)")
-    s.add_argument("--profile", required=True)
+    s.add_argument("--profile", required=True, help="drive profile TOML")
     s.add_argument("--out", required=True, help="model file to write (JSON); one with workbench versions is kept "
                    "unless --replace")
     s.add_argument("--replace", action="store_true", help="overwrite --out even if it holds workbench versions")
@@ -326,10 +342,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_identify)
 
     s = sub.add_parser("diagnose", parents=[common], help="normal / caution / warning for each record")
-    s.add_argument("--model", required=True)
+    s.add_argument("--model", required=True, help="baseline model file (JSON, from identify or learn)")
     s.add_argument("--report", metavar="DIR", help="write an HTML page: decision table, parameter cluster, each "
                    "record's residual spectrum with TH1-TH3 and the fault sidebands (needs the workbench install)")
-    s.add_argument("data", nargs="+")
+    s.add_argument("data", nargs="+", help="records to diagnose (CSV, NPZ, TDMS)")
     s.set_defaults(func=cmd_diagnose)
 
     for module in EXTENSIONS:  # command groups that live with their subsystem
@@ -350,7 +366,13 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(argv: list[str] | None) -> int:
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except UsageError as err:  # one line on stderr already; with --json also the error object
+        if "--json" in (sys.argv[1:] if argv is None else argv):
+            json.dump({"error": err.message, "exit": 2}, sys.stdout)
+            sys.stdout.write("\n")
+        raise
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, stream=sys.stderr,
                         format="%(levelname)s %(name)s: %(message)s")
     try:

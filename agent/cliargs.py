@@ -8,11 +8,21 @@ import math
 import sys
 
 
+class UsageError(SystemExit):
+    """A usage error: its one line is on stderr already; ``message`` for the JSON error object."""
+
+    def __init__(self, message: str):
+        super().__init__(2)
+        self.message = message
+
+
 class Parser(argparse.ArgumentParser):
     """An ArgumentParser whose usage errors are one line (``prog: error: ...``) and exit 2."""
 
     def error(self, message: str):
-        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
+        text = f"{message} (see --help)"
+        sys.stderr.write(f"{self.prog}: error: {text}\n")
+        raise UsageError(text)
 
 
 def number(lo: float | None = None, hi: float | None = None, *, low_open: bool = False, integer: bool = False,

@@ -9,6 +9,15 @@ parameter-cluster distance, combined into normal / caution / warning.
   measured rates). ``rule="line"`` is the paper's literal reading: the worst single line.
 * cluster: outside the healthy region (Mahalanobis distance beyond the region's limit) is a warning.
 * overall: the worse of the two.
+* family verdict (``verdict``, and ``reason`` in words): the component most likely at fault, from
+  all its sideband pairs together. A pair's evidence is its z, (magnitude - centre) / spread at the
+  lower of its two lines, floored at 0; a family's score is the mean over its orders weighted 1/k
+  (a defect's harmonics fall with order, so a line that is one family's low order is likelier
+  that family's). Pairs on the same lines (at ratio 2 the driving gear's k=1 is the driven gear's
+  k=2) count for both families and are listed once, under the higher-ranked family, with
+  ``shared_with`` naming the others. Families are ranked by their level, then by the level of
+  their *unshared* pairs (the lines only that component explains: a dry mesh's driven-gear ovality
+  sits on the shared line, but its k=1 and k=3 are the driven gear's alone), then by score.
 """
 
 from __future__ import annotations
@@ -18,7 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from agent.baseline import Baseline, residual_spectra
-from agent.evidence import K_MAX, STATES, AlarmConfig, feature_values
+from agent.evidence import K_MAX, STATES, AlarmConfig, feature_values, make_features
 from agent.frequencies import fault_frequencies
 from agent.identify import cluster_point, operating_point, record_signals
 from agent.model import Signals
@@ -46,14 +55,15 @@ class Diagnosis:
     notes: list[str] = field(default_factory=list)
     evidence: dict = field(default_factory=dict)  #: the alarm evidence of the record (agent.evidence)
     quality: str = "good"  #: "no_model" when the drive is not running (``reason`` says why)
-    reason: str | None = None
+    reason: str | None = None  #: why no diagnosis (quality not good), else the family verdict in words
+    verdict: dict = field(default_factory=dict)  #: :func:`family_verdict` (the component most likely at fault)
     spectrum: tuple | None = field(default=None, repr=False)  #: (freqs Hz, amplitude per window) for plots
 
     def to_json(self) -> dict:
         return {"record": self.record, "state": self.state, "quality": self.quality, "reason": self.reason,
                 "spectrum_state": self.spectrum_state, "cluster_state": self.cluster_state, "peaks": self.peaks,
                 "cluster": self.cluster, "operating_point": self.operating_point, "notes": self.notes,
-                "evidence": self.evidence}
+                "evidence": self.evidence, "verdict": self.verdict}
 
 
 def spectrum_peaks(baseline: Baseline, freqs: np.ndarray, amp: np.ndarray, fe_hz: float) -> list[dict]:
@@ -80,10 +90,76 @@ def spectrum_peaks(baseline: Baseline, freqs: np.ndarray, amp: np.ndarray, fe_hz
     peaks = []
     for j, (family, k, f) in enumerate(lines):
         level = "warning" if mag_min[j] > th3[j] else "caution" if mag_min[j] > th2[j] else "normal"
+        z = (mag_min[j] - th.centre[centre[j]]) / max(float(th.spread[centre[j]]), 1e-30)
         peaks.append({"freq_hz": round(float(freqs[bin_at[j]]), 4), "family": family, "k": k, "level": level,
                       "magnitude": float(mag_min[j]), "th2": float(th2[j]), "th3": float(th3[j]),
-                      "target_hz": round(f, 4)})
+                      "target_hz": round(f, 4), "z": round(float(z), 3)})
     return peaks
+
+
+def shared_pairs(profile, fe_hz: float, resolution_hz: float) -> dict[tuple[str, int], list[tuple[str, int]]]:
+    """(family, k) -> the other (family, k) whose sideband pair lies on the same lines (within
+    ``resolution_hz``, Hz), as the alarm features merge them (:func:`agent.evidence.make_features`)."""
+    out: dict[tuple[str, int], list[tuple[str, int]]] = {}
+    for feat in make_features(profile, fe_hz, resolution_hz, float("inf")):
+        group = [(feat.family, feat.k), *feat.shared]
+        for member in group:
+            out[member] = [g for g in group if g != member]
+    return out
+
+
+def family_verdict(peaks: list[dict], profile, fe_hz: float, resolution_hz: float) -> dict:
+    """The component most likely at fault from every line of :func:`spectrum_peaks` (module
+    docstring): ``{"family": best or None, "families": [{"family", "score", "level", "pairs":
+    [{"k", "z", "level", "shared_with"}]}] best first}``; ``family`` is None when no pair is above
+    TH2."""
+    pairs: dict[tuple[str, int], list[dict]] = {}
+    for p in peaks:
+        pairs.setdefault((p["family"], p["k"]), []).append(p)
+    shared = shared_pairs(profile, fe_hz, resolution_hz)
+    families = []
+    for family in dict.fromkeys(f for f, _ in pairs):
+        rows = []
+        for k in sorted(k for f, k in pairs if f == family):
+            lines = pairs[(family, k)]
+            rows.append({"k": k, "z": round(max(min(p["z"] for p in lines), 0.0), 3),
+                         "level": min((p["level"] for p in lines), key=STATES.index),
+                         "shared_with": [f"{f} k={j}" for f, j in shared.get((family, k), [])]})
+        weights = [1.0 / r["k"] for r in rows]
+        score = sum(w * r["z"] for w, r in zip(weights, rows)) / sum(weights)
+        families.append({"family": family, "score": round(score, 3),
+                         "level": worst("normal", *(r["level"] for r in rows)),
+                         "unshared_level": worst("normal", *(r["level"] for r in rows if not r["shared_with"])),
+                         "pairs": rows})
+    families.sort(key=lambda f: (f["level"] != "normal", STATES.index(f["unshared_level"]), f["score"]), reverse=True)
+    best = families[0]["family"] if families and families[0]["level"] != "normal" else None
+    return {"family": best, "families": families}
+
+
+def verdict_text(verdict: dict) -> str:
+    """The family verdict in one sentence (a diagnosis's ``reason``)."""
+    fams = verdict["families"]
+    if verdict["family"] is None:
+        return "no fault family: no sideband pair above TH2"
+    best, others = fams[0], fams[1:]
+    raised = [f"k={r['k']}" for r in best["pairs"] if r["level"] != "normal"]
+    shared = [f"k={r['k']} = {', '.join(r['shared_with'])}" for r in best["pairs"] if r["shared_with"]]
+    return (f"{best['family']} most likely at fault (evidence {best['score']:.1f}, pairs {', '.join(raised)} "
+            f"above TH2)" + "".join(f"; {f['family']} {f['score']:.1f}" for f in others)
+            + (f"; shared lines: {'; '.join(shared)}" if shared else ""))
+
+
+def _listed_once(flagged: list[dict], verdict: dict, shared: dict) -> list[dict]:
+    """The flagged lines in the verdict's family order, a line shared by several families listed
+    once (under the highest-ranked of them) with ``shared_with``."""
+    rank = {f["family"]: j for j, f in enumerate(verdict["families"])}
+    out = []
+    for p in flagged:
+        partners = shared.get((p["family"], p["k"]), [])
+        if any(rank.get(f, 1 << 30) < rank.get(p["family"], 1 << 30) for f, _ in partners):
+            continue  # listed under the family ranked above
+        out.append({**p, "shared_with": [f"{f} k={j}" for f, j in partners]})
+    return sorted(out, key=lambda p: (rank.get(p["family"], 1 << 30), p["k"], p["freq_hz"]))
 
 
 def spectrum_decision(peaks: list[dict], rule: str = "pair") -> tuple[str, list[dict]]:
@@ -149,11 +225,15 @@ def decide(baseline: Baseline, freqs: np.ndarray, amp: np.ndarray, point: np.nda
     """Table 4 from the residual spectra of the windows (n_windows, bins) and the cluster point."""
     peaks = spectrum_peaks(baseline, freqs, amp, op["fe_hz"])
     spectrum_state, flagged = spectrum_decision(peaks, baseline.settings.get("spectrum_rule", "pair"))
+    resolution = float(freqs[1] - freqs[0]) if freqs.size > 1 else 0.0
+    verdict = family_verdict(peaks, baseline.profile, op["fe_hz"], resolution)
     d2 = baseline.cluster.distance2(point)
     cluster_state = "warning" if d2 > baseline.cluster.limit else "normal"
     return Diagnosis(
         record=source, state=worst(spectrum_state, cluster_state), spectrum_state=spectrum_state,
-        cluster_state=cluster_state, peaks=flagged,
+        cluster_state=cluster_state,
+        peaks=_listed_once(flagged, verdict, shared_pairs(baseline.profile, op["fe_hz"], resolution)),
+        verdict=verdict, reason=verdict_text(verdict),
         cluster={"ts_over_lq": float(point[0]), "b_gt": float(point[1]), "distance2": d2,
                  "limit": baseline.cluster.limit, "confidence": baseline.cluster.confidence},
         operating_point=op, notes=operating_point_notes(baseline.operating_point, op))

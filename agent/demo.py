@@ -62,7 +62,8 @@ def run_demo(seconds: float = WALL_LIMIT_S, say=print) -> list[dict]:
             say(f"[{t:6.2f} s] {drive}: {kind} {item['from']} -> {item['to'].upper()}"
                 + (f" (residual lines at {peaks} Hz)" if peaks else ""))
         elif kind == "learning":
-            what = detail.get("phase") or f"{detail.get('progress_pct', 0):.0f} %"
+            what = detail.get("phase") or (f"{detail.get('progress_pct', 0):.0f} %, about "
+                                           f"{detail.get('remaining_s', 0):.0f} s of operation more")
             say(f"[{t:6.2f} s] {drive}: learning a baseline ({what})")
         elif kind == "learning_refused":
             say(f"[{t:6.2f} s] {drive}: learning refused: {detail.get('reason')}")

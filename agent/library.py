@@ -64,6 +64,11 @@ class ModelLibrary:
         self.baselines[name] = baseline
         return path
 
+    def remove(self, name: str) -> None:
+        """Take a baseline out of the library and delete its file (``learn --replace``)."""
+        (self.directory / f"{name}.json").unlink(missing_ok=True)
+        self.baselines.pop(name, None)
+
     def distance(self, name: str, fe_hz: float, load_pct: float) -> float:
         """Normalised distance of an operating point from a baseline's; <= 1 means within range."""
         op = self.baselines[name].operating_point

@@ -35,6 +35,7 @@ replace it). The baseline is then written to the library (atomically) and schedu
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass
 
@@ -80,10 +81,24 @@ class PipelineConfig:
     max_voltage_v: float = float("inf")
     alarm: AlarmConfig = AlarmConfig()  #: the alarm logic (agent.evidence)
 
+    @property
+    def learn_total_s(self) -> float:
+        """Seconds of steady operation a commissioning needs in one uninterrupted stream: the pass-1
+        spans, then whole stretches until ``learn_stretches`` and ``learn_min_s``
+        (:attr:`DriveMonitor.learn_remaining_s` at the start)."""
+        stretches = max(self.learn_stretches, math.ceil(self.learn_min_s / self.alarm.stretch_s - 1e-9))
+        return self.learn_windows * self.window_s * self.span_windows + stretches * self.alarm.stretch_s
+
     def __post_init__(self):
         ratio = self.window_s / self.hop_s
         if self.hop_s <= 0 or abs(ratio - round(ratio)) > 1e-9 or self.span_windows < 1:
             raise ValueError("pipeline: hop_s must divide window_s, span_windows >= 1")
+
+
+def covered_text(covering: str, op: dict) -> str:
+    """Why learning at ``op`` is refused without ``replace``."""
+    return (f"baseline {covering} already covers fe {op['fe_hz']:.2f} Hz, load {op['load_pct']:.1f} % "
+            f"(--replace replaces it)")
 
 
 def _learn_stretch() -> dict:
@@ -367,8 +382,9 @@ class DriveMonitor:
     # -- learning -------------------------------------------------------------------------------
     def start_learning(self, name: str | None = None, replace: bool = False, vet=None, **settings) -> None:
         """Learn a baseline named ``name`` (default ``<drive>_<fe>hz_<load>pct``, from the learned
-        operating point) from the stream; ``replace`` lets it replace the baseline of that name when
-        that baseline covers the operating point (never implicit). ``vet(baseline)``, when given, is
+        operating point) from the stream; ``replace`` lets it replace the baseline that covers the
+        operating point, whatever its name (never implicit; without it a covered point is refused
+        at the first span). ``vet(baseline)``, when given, is
         called with the learned baseline before it is written (it raises to keep it out)."""
         self._builder = BaselineBuilder(self.profile, window_s=self.config.window_s, **settings)
         self._learn_vet = vet
@@ -380,11 +396,50 @@ class DriveMonitor:
         self._learn_seconds = 0.0
         self._learn_reported = -1
         self._learn_hops = self._learn_bad = 0
-        self.on_event("learning", {"name": name, "phase": "parameters", "progress_pct": 0.0})
+        self._learn_op: dict | None = None  #: the operating point of the first span learned from
+        self.on_event("learning", {"name": name, "phase": "parameters", "progress_pct": 0.0,
+                                   "remaining_s": self.learn_remaining_s})
 
     @property
     def learning(self) -> bool:
         return self._builder is not None
+
+    @property
+    def learning_point(self) -> dict | None:
+        """The operating point being learned (the pass-1 spans' median; the first span's before)."""
+        if self._builder is None:
+            return None
+        fits = [f.operating_point for f in self._builder.fits]
+        if not fits:
+            return self._learn_op
+        return {k: float(np.median([op[k] for op in fits])) for k in ("fe_hz", "load_pct")}
+
+    @property
+    def learn_remaining_s(self) -> float:
+        """Seconds of steady operation the learning still needs, by its own rule: the pass-1 spans
+        left (``span_windows`` x ``window_s`` each), then the pass-2 time until ``learn_stretches``
+        stretches of ``alarm.stretch_s`` are complete and at least ``learn_min_s`` has been seen,
+        rounded up to the end of a stretch (the rule is checked there). Settling hops, a stream's
+        first span and a stretch cut by an operating-point move or a gap are not counted: they add
+        to it (:meth:`learn_needs_text`)."""
+        if self._builder is None:
+            return 0.0
+        c, b = self.config, self._builder
+        stretch_s = c.alarm.stretch_s
+        partial = self._learn_stretch["seconds"]
+        for_stretches = max(c.learn_stretches - len(b.stretch_windows), 0) * stretch_s - partial
+        for_minimum = c.learn_min_s - self._learn_seconds
+        if for_minimum > for_stretches:  # more stretches, to the end of the one that passes learn_min_s
+            for_stretches = math.ceil((partial + for_minimum) / stretch_s - 1e-9) * stretch_s - partial
+        pass_1 = max(c.learn_windows - len(b.fits), 0) * self.n_span / self.rate
+        return pass_1 + max(for_stretches, 0.0)
+
+    def learn_needs_text(self, op: dict | None = None) -> str:
+        """'learning reached 84 %: about 5 more minutes of steady operation at 92 % load (fe 100.0 Hz)'."""
+        rest = self.learn_remaining_s
+        more = f"{math.ceil(rest / 60 - 1e-9)} more minutes" if rest >= 90 else f"{math.ceil(rest - 1e-9)} more seconds"
+        at = f" at {op['load_pct']:.0f} % load (fe {op['fe_hz']:.1f} Hz)" if op else ""
+        return f"learning reached {self.learn_progress_pct:.0f} %: about {more} of steady operation{at}"
 
     @property
     def learn_progress_pct(self) -> float:
@@ -413,6 +468,11 @@ class DriveMonitor:
         and ``learn_min_s`` seconds; then the checks and the write."""
         b, c = self._builder, self.config
         hop_s = c.hop_s
+        if self._learn_op is None:  # the first span learned from: is the point already covered?
+            self._learn_op = op
+            covering = self.library.select(op["fe_hz"], op["load_pct"])
+            if covering is not None and not self._learn_replace:
+                return self._refuse(covered_text(covering, op), op)
         if len(b.fits) < c.learn_windows:
             if self._samples - self._learn_mark >= self.n_span:  # non-overlapping spans
                 self._learn_mark = self._samples
@@ -420,7 +480,8 @@ class DriveMonitor:
                 if len(b.fits) == c.learn_windows:
                     self._learn_mark = -(1 << 62)
                     self.on_event("learning", {"name": self._learn_name, "phase": "thresholds",
-                                               "progress_pct": self.learn_progress_pct})
+                                               "progress_pct": self.learn_progress_pct,
+                                               "remaining_s": self.learn_remaining_s})
             return self._learning_status(op)
         if self.alarms.new_stretch:  # the guard saw this hop's reading (AlarmLogic.observe)
             self._learn_stretch = _learn_stretch()  # never mixes operating points
@@ -461,10 +522,11 @@ class DriveMonitor:
         pct = self.learn_progress_pct
         if int(pct // 10) != self._learn_reported:  # journal every 10 %
             self._learn_reported = int(pct // 10)
-            self.on_event("learning", {"name": self._learn_name, "progress_pct": pct})
+            self.on_event("learning", {"name": self._learn_name, "progress_pct": pct,
+                                       "remaining_s": self.learn_remaining_s})
         return self._set(quality="learning", state="normal", spectrum_state="normal", cluster_state="normal",
                          fe_hz=op["fe_hz"], load_pct=op["load_pct"], peaks=[], learn_progress_pct=pct,
-                         reason=f"learning {self._learn_name}: {pct:.0f} %")
+                         reason=self.learn_needs_text(op) + (f" for {self._learn_name}" if self._learn_name else ""))
 
     def _finish_learning(self, op: dict) -> DriveStatus:
         b = self._builder
@@ -477,15 +539,18 @@ class DriveMonitor:
         if self._learn_name is None:
             self._learn_name = f"{self.drive}_{bop['fe_hz']:.0f}hz_{bop['load_pct']:.0f}pct"
         covering = self.library.select(bop["fe_hz"], bop["load_pct"])
-        if covering is not None and not (self._learn_replace and covering == self._learn_name):
-            return self._refuse(f"baseline {covering} already covers fe {bop['fe_hz']:.2f} Hz, load "
-                                f"{bop['load_pct']:.1f} % (replace it explicitly)", op)
+        if covering is not None and not self._learn_replace:
+            return self._refuse(covered_text(covering, bop), op)
         if self._learn_vet is not None:
             self._learn_vet(baseline)
         path = self.library.add(self._learn_name, baseline)
+        replaced = covering if covering not in (None, self._learn_name) else None
+        if replaced is not None:  # replaced under another name: the old one leaves the library
+            self.library.remove(replaced)
         self._builder = None
         self.on_event("learned", {"name": self._learn_name, "path": str(path), "operating_point": bop,
-                                  "stretches": baseline.evidence.n if baseline.evidence else 0})
+                                  "stretches": baseline.evidence.n if baseline.evidence else 0,
+                                  "replaced": covering if self._learn_replace else None})
         return self._set(quality="good", state="normal", spectrum_state="normal", cluster_state="normal",
                          fe_hz=op["fe_hz"], load_pct=op["load_pct"], peaks=[], learn_progress_pct=100.0,
                          reason=f"learned {self._learn_name}")

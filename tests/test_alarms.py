@@ -12,8 +12,8 @@ import math
 import numpy as np
 import pytest
 
-from agent.evidence import (AlarmConfig, AlarmLogic, EvidenceStats, Feature, cusum_arl, cusum_threshold,
-                            make_features, student_t_isf, student_t_sf)
+from agent.evidence import (AlarmConfig, AlarmLogic, EvidenceStats, Feature, chi2_lower, cusum_arl,
+                            cusum_threshold, make_features, student_t_isf, student_t_sf)
 from agent.library import ModelLibrary
 from agent.pipeline import DriveMonitor, PipelineConfig
 from bench.alarm_scenarios import Plant, Operation, commission, stream
@@ -109,6 +109,40 @@ def test_few_stretches_widen_the_standardisation():
         assert st.stretch_z(y)[0] == pytest.approx(expected, rel=0.02)
     # single windows' spread about the mean (here one window per stretch: the stretches' sd)
     assert few.window_z(y)[0] == pytest.approx(0.3 / 0.1 / math.sqrt(1 + 1 / 6))
+
+
+def test_correlated_stretches_widen_the_scale_as_an_ar1_sequences_mean_varies():
+    """Consecutive stretches of one stream are correlated (lag-1 rho): a CUSUM sums them, and the
+    sum of m values of an AR(1) sequence varies (1 + rho) / (1 - rho) times as much as m
+    independent ones. Reference: the variance of the mean of 200 consecutive AR(1) values by
+    Monte Carlo, independent of the fit, against the scale the fit learns from one such stream
+    (an inverted rho term, sqrt((1 - rho) / (1 + rho)), reads 1/9 of it)."""
+    rho, n, sd = 0.5, 2000, 0.1
+    rng = np.random.default_rng(17)
+
+    def ar1(shape):
+        x = np.empty(shape)
+        x[..., 0] = rng.standard_normal(shape[:-1])
+        e = rng.standard_normal(shape) * math.sqrt(1 - rho**2)
+        for j in range(1, shape[-1]):
+            x[..., j] = rho * x[..., j - 1] + e[..., j]
+        return x
+
+    m = 200
+    sums = ar1((4000, m)).mean(axis=1)
+    reference = float(np.var(sums) * m)  # variance of the mean of m values, in units of sigma^2 / m
+    assert reference == pytest.approx((1 + rho) / (1 - rho), rel=0.1)  # the closed form's large-m limit
+    y = ar1((n,)) * sd
+    cl = np.column_stack((1e-3 + rng.standard_normal(n) * 1e-6, 0.07 + rng.standard_normal(n) * 1e-4))
+    stats = EvidenceStats.fit([Feature("gear_driven", 1)], list(y[:, None, None]), cl, np.full(n, 80.0), 30.0,
+                              profile(), consecutive=True)
+    assert stats.rho == pytest.approx(rho, abs=0.06)
+    c_sigma = math.sqrt((n - 1) / chi2_lower(0.05, n - 1))
+    widening = float(stats.scale[0] / (stats.sd[0] * c_sigma)) ** 2
+    assert widening == pytest.approx(reference, rel=0.15), (widening, reference)
+    # separate records (consecutive=False) are independent: no widening
+    assert EvidenceStats.fit([Feature("gear_driven", 1)], list(y[:, None, None]), cl, np.full(n, 80.0), 30.0,
+                             profile(), consecutive=False).rho == 0.0
 
 
 def test_student_t_tail_against_scipy():

@@ -1,6 +1,6 @@
 """Everything a newcomer can type gives a result or one line: exit 2, one stderr line naming the
-flag, file or value, never a traceback (a table of bad inputs per subcommand, and hypothesis for
-the numeric flags)."""
+flag, file or value, never a traceback: ports in use, stopped drives, hypothesis for the numeric
+flags. The table of bad inputs per subcommand is tests/test_quiet_wrong.py."""
 
 from __future__ import annotations
 
@@ -10,109 +10,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from agent.cli import build_parser, main
-from agent.modelfile import save_baseline
 from agent.records import save_record
-from runtime_support import PROFILE_PATH, healthy_baseline, sim
+from runtime_support import PROFILE_PATH, sim
+from test_quiet_wrong import files  # noqa: F401 - the bad inputs' folder (a fixture)
 
 pytestmark = pytest.mark.timeout(300)
 P = str(PROFILE_PATH)
-
-
-@pytest.fixture(scope="module")
-def files(tmp_path_factory):
-    d = tmp_path_factory.mktemp("bad")
-    rec = str(save_record(sim("healthy", 80.0, 2.0, 3), d / "rec.npz"))
-    model = str(save_baseline(healthy_baseline(), d / "model.json"))
-    n = 50_000
-    zeros = {k: np.zeros(n) for k in ("va", "vb", "vc", "ia", "ib", "ic")}
-    np.savez(d / "zeros.npz", t=np.arange(n) / 25_000.0, **zeros)
-    (d / "empty.csv").write_text("")
-    (d / "header.csv").write_text("t,va,vb,vc,ia,ib,ic\n")
-    (d / "missing.csv").write_text("t,va,vb,vc,ia,ib\n0,1,2,3,4,5\n")
-    (d / "text.csv").write_text("t,va,vb,vc,ia,ib,ic\n0,1,2,3,4,5,x\n")
-    (d / "notzip.npz").write_text("not a zip")
-    (d / "bad.json").write_text("{")
-    (d / "bad.toml").write_text("[motor\n")
-    (d / "unknown.toml").write_text(open(P).read() + "\n[extra]\nx = 1\n")
-    (d / "dir.npz").mkdir()
-    shipped = (PROFILE_PATH.parents[1] / "agent.toml").read_text().replace("profiles/", f"{PROFILE_PATH.parent}/")
-    for name, old, new in (("window.toml", "window_s = 2.0", "window_s = 1e12"),
-                           ("hop.toml", "hop_s = 1.0", "hop_s = -1"),
-                           ("stretches.toml", "learn_stretches = 40", "learn_stretches = 0"),
-                           ("buffers.toml", "window_s = 2.0", "window_s = 40.0")):
-        (d / name).write_text(shipped.replace(old, new))
-    return {"dir": str(d), "rec": rec, "model": model, **{k.replace(".", "_"): str(d / k) for k in (
-        "zeros.npz", "empty.csv", "header.csv", "missing.csv", "text.csv", "notzip.npz", "bad.json",
-        "bad.toml", "unknown.toml", "dir.npz", "window.toml", "hop.toml", "stretches.toml", "buffers.toml")}}
-
-
-#: (argv with {placeholders}, a word the one line must contain)
-CASES = [
-    (["simulate", "--profile", P, "--seconds", "-1", "--out", "{dir}/x.npz"], "--seconds"),
-    (["simulate", "--profile", P, "--seconds", "1e12", "--out", "{dir}/x.npz"], "--seconds"),
-    (["simulate", "--profile", P, "--load", "nan", "--out", "{dir}/x.npz"], "--load"),
-    (["simulate", "--profile", P, "--load", "80%", "--out", "{dir}/x.npz"], "--load"),
-    (["simulate", "--profile", P, "--count", "0", "--out", "{dir}/x.npz"], "--count"),
-    (["simulate", "--profile", P, "--seed", "-3", "--out", "{dir}/x.npz"], "--seed"),
-    (["simulate", "--profile", P, "--condition", "broken", "--out", "{dir}/x.npz"], "broken"),
-    (["simulate", "--profile", P, "--out", "{dir}/x.txt"], ".txt"),
-    (["simulate", "--profile", "{bad_toml}", "--out", "{dir}/x.npz"], "bad.toml"),
-    (["simulate", "--profile", "{unknown_toml}", "--out", "{dir}/x.npz"], "extra"),
-    (["simulate", "--profile", "{dir}/nope.toml", "--out", "{dir}/x.npz"], "nope.toml"),
-    (["simulate", "--out", "{dir}/x.npz"], "--profile"),
-    (["frequencies", "--profile", P, "--fe", "0"], "--fe"),
-    (["frequencies", "--profile", P, "--fe", "-50"], "--fe"),
-    (["frequencies", "--profile", P, "--k", "0"], "--k"),
-    (["frequencies", "--profile", P, "--k", "2.5"], "--k"),
-    (["identify", "--profile", P, "--out", "{dir}/m.json", "{rec}", "{rec}", "{rec}"], "at least 4"),
-    (["identify", "--profile", P, "--confidence", "95", "--out", "{dir}/m.json", "{rec}"], "--confidence"),
-    (["identify", "--profile", P, "--confidence", "1", "--out", "{dir}/m.json", "{rec}"], "--confidence"),
-    (["identify", "--profile", P, "--window", "0", "--out", "{dir}/m.json", "{rec}"], "--window"),
-    (["identify", "--profile", P, "--window", "-2", "--out", "{dir}/m.json", "{rec}"], "--window"),
-    (["identify", "--profile", P, "--out", "{dir}/m.json", "{zeros_npz}", "{rec}", "{rec}", "{rec}"], "not running"),
-    (["identify", "--profile", P, "--out", "{dir}/m.json", "{empty_csv}", "{rec}", "{rec}", "{rec}"], "empty.csv"),
-    (["identify", "--profile", P, "--out", "{dir}/m.json", "{header_csv}", "{rec}", "{rec}", "{rec}"], "no data rows"),
-    (["identify", "--profile", P, "--out", "{dir}/m.json", "{missing_csv}", "{rec}", "{rec}", "{rec}"], "'ic'"),
-    (["identify", "--profile", P, "--out", "{dir}/m.json", "{text_csv}", "{rec}", "{rec}", "{rec}"], "'ic'"),
-    (["identify", "--profile", P, "--out", "{dir}/m.json", "{notzip_npz}", "{rec}", "{rec}", "{rec}"], "not a zip file"),
-    (["identify", "--profile", P, "--out", "{dir}/m.json", "{dir_npz}", "{rec}", "{rec}", "{rec}"], "dir.npz: is a folder"),
-    (["identify", "--profile", P, "--window", "0.5", "--out", "{dir}", "{rec}", "{rec}", "{rec}", "{rec}"],
-     "cannot write model: Is a directory"),
-    (["diagnose", "--model", "{bad_json}", "{rec}"], "bad.json"),
-    (["diagnose", "--model", "{dir}/none.json", "{rec}"], "none.json"),
-    (["diagnose", "--model", "{model}", "{dir}/none.npz"], "none.npz"),
-    (["diagnose", "--model", "{model}", "--report", "{rec}", "{rec}"], "--report"),
-    (["diagnose", "--model", "{model}", "--report", "/proc/nope", "{rec}"], "--report"),
-    (["model", "compare", "--model", "{model}", "--report", "{rec}", "{rec}"], "--report"),
-    (["model", "explain", "--model", "{model}", "--report", "{bad_json}", "{rec}"], "--report"),
-    (["model", "add-effect", "--model", "{model}", "--effect", "current_offset", "--out", "{model}", "{rec}"],
-     "never overwritten"),
-    (["model", "compare", "--model", "{model}", "{zeros_npz}"], "not running"),
-    (["model", "explain", "--model", "{model}", "{zeros_npz}"], "not running"),
-    (["events", "--state-dir", "{dir}", "--limit", "-1"], "--limit"),
-    (["run", "--check-config", "{bad_toml}"], "bad.toml"),
-    (["run", "--check-config", "{dir}/nope.toml"], "nope.toml"),
-    (["run", "--check-config", "{window_toml}"], "pipeline.window_s"),
-    (["run", "--check-config", "{hop_toml}"], "pipeline.hop_s"),
-    (["run", "--check-config", "{stretches_toml}"], "pipeline.learn_stretches"),
-    (["run", "--config", "{window_toml}"], "pipeline.window_s"),
-    (["run", "--check-config", "{buffers_toml}"], "MB"),
-    (["learn", "--config", "{dir}/nope.toml", "--drive", "d1"], "nope.toml"),
-    (["demo", "--seconds", "0"], "--seconds"),
-    (["nosuchcommand"], "nosuchcommand"),
-]
-
-
-@pytest.mark.parametrize("argv, word", CASES, ids=[" ".join(c[0][:4]) for c in CASES])
-def test_bad_input_is_one_line_and_exit_2(files, capsys, argv, word):
-    argv = [a.format(**files) for a in argv]
-    with pytest.raises(SystemExit) if _usage_error(argv) else _no_exit():
-        rc = main(argv)
-    out, err = capsys.readouterr()
-    rc = 2 if _usage_error(argv) else rc
-    assert rc == 2, (out, err)
-    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
-    assert word in err, err
 
 
 @pytest.mark.parametrize("what", ["modbus", "zenoh"])
@@ -208,24 +111,3 @@ def test_numeric_flags_parse_or_fail_with_one_line(flag, value):
             return
     parsed = getattr(args, name.lstrip("-").replace("-", "_"))
     assert np.isfinite(parsed)
-
-
-def _usage_error(argv) -> bool:
-    """Does argparse itself reject argv (it exits with SystemExit(2) before any handler)?"""
-    import contextlib
-    import io
-
-    with contextlib.redirect_stderr(io.StringIO()):
-        try:
-            build_parser().parse_args(argv)
-        except SystemExit:
-            return True
-    return False
-
-
-class _no_exit:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False

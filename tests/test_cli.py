@@ -172,8 +172,8 @@ def test_console_script_no_traceback(tmp_path):
     bad = tmp_path / "p.toml"
     bad.write_text((ROOT / "config/profiles/rig_gear.toml").read_text().replace("[motor]", "[motor]\nfoo = 1"))
     proc = subprocess.run([str(exe), "frequencies", "--profile", str(bad), "--json"], capture_output=True, text=True)
-    assert proc.returncode == 2 and json.loads(proc.stdout) == {"error": proc.stderr.strip().split(": error: ", 1)[-1],
-                                                                "exit": 2}  # --json: the error for scripts too
+    assert proc.returncode == 2 and json.loads(proc.stdout) == {"error": proc.stderr.split("error: ", 1)[1].strip(),
+                                                                 "exit": 2}
     assert "Traceback" not in proc.stderr and "motor.foo" in proc.stderr
     proc = subprocess.run([str(exe), "frequencies", "--profile", GEAR, "--json"], capture_output=True, text=True)
     assert proc.returncode == 0 and "families" in json.loads(proc.stdout)
@@ -205,3 +205,26 @@ def test_demo_ends_on_sigterm_and_leaves_no_temp_dir(tmp_path):
     assert proc.returncode == 0, out
     assert "demo: done after" in out
     assert not list(tmp_path.glob("pmsm-demo-*"))
+
+
+def _arguments(parser, path: str):
+    """(command path, argument) for every option and positional of ``parser`` and its subcommands."""
+    import argparse
+
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from _arguments(sub, f"{path} {name}")
+        else:
+            yield path, action
+
+
+def test_every_option_and_positional_has_help():
+    """Walks the whole argparse tree of ``pmsm-agent``: an option without help is a flag a user
+    must guess at."""
+    from agent.cli import build_parser
+
+    seen = list(_arguments(build_parser(), "pmsm-agent"))
+    missing = [f"{path}: {'/'.join(a.option_strings) or a.dest}" for path, a in seen
+               if not (a.help or "").strip()]
+    assert len(seen) > 60 and not missing, missing

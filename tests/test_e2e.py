@@ -173,7 +173,7 @@ def events(state: Path) -> list[dict]:
     r = subprocess.run([PMSM_AGENT, "events", "--state-dir", str(state), "--json", "--limit", "10000"],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
-    return list(reversed(json.loads(r.stdout)["events"]))  # oldest first
+    return json.loads(r.stdout)["events"]  # oldest first, as `events` lists them
 
 
 def docs(samples: Samples, since: float = 0.0) -> list[dict]:

@@ -101,3 +101,99 @@ def test_learn_from_a_live_source_that_is_not_there(tmp_path, capsys):
     rc, out, err = run(["learn", "--config", str(cfg), "--drive", "drive1", "--max-seconds", "5"], capsys)
     assert rc == 2 and "Traceback" not in err and len(err.strip().splitlines()) == 1
     assert "cannot open its serial source" in err, err
+
+
+def _stream_file(tmp_path, seconds: float, load: float = 80.0, seed: int = 700) -> str:
+    """One uninterrupted healthy record of ``seconds`` (one stream: no per-file losses)."""
+    from agent.simulator import simulate
+
+    path = tmp_path / f"stream_{seconds:g}_{load:g}_{seed}.npz"
+    return str(save_record(simulate(PROFILE_PATH, "healthy", load, seconds, seed=seed), path))
+
+
+def _more_seconds(err: str) -> int:
+    import re
+
+    m = re.search(r"about (\d+) more (seconds|minutes) of steady operation at (\d+) % load", err)
+    assert m and abs(int(m.group(3)) - 80) <= 5, err  # the load learned at (simulated at 80 % of rated torque)
+    return int(m.group(1)) * (60 if m.group(2) == "minutes" else 1)
+
+
+def test_a_refusal_for_too_little_data_says_how_much_more_and_it_is_enough(tmp_path, capsys):
+    """The rule (6 spans of 4 s, then 8 stretches of 4 s: 56 s of steady operation) from the
+    pipeline itself: after 40 s the refusal asks for 16 s more at the load learned; a stream that
+    long learns, one 2 s shorter does not."""
+    cfg = config(tmp_path)
+    rc, out, err = run(["learn", "--config", str(cfg), "--drive", "drive1", _stream_file(tmp_path, 40.0)], capsys)
+    assert rc == 2 and "not enough healthy data" in err and "learning reached" in err, err
+    assert "56 s in all" in err and "about 1 more file of 40 s" in err, err
+    more = _more_seconds(err)
+    assert more == 16, err
+    rc, out, err = run(["learn", "--config", str(cfg), "--drive", "drive1", _stream_file(tmp_path, 40.0 + more - 2)],
+                       capsys)
+    assert rc == 2 and _more_seconds(err) == 2, err
+    rc, out, err = run(["learn", "--config", str(cfg), "--drive", "drive1", _stream_file(tmp_path, 40.0 + more)], capsys)
+    assert rc == 0, err
+
+
+def test_the_progress_says_how_many_minutes_remain():
+    """The shipped rule: 30 spans of 4 s (2 min), then 40 stretches of 30 s over at least 20 min:
+    22 minutes of steady operation before anything is learned."""
+    from agent.library import ModelLibrary
+    from agent.pipeline import DriveMonitor, PipelineConfig
+    from agent.profile import load_profile
+    import tempfile
+
+    mon = DriveMonitor("d1", load_profile(PROFILE_PATH), ModelLibrary(tempfile.mkdtemp()), PipelineConfig())
+    mon.start_learning()
+    assert mon.learn_remaining_s == PipelineConfig().learn_total_s == 22 * 60.0
+    assert mon.learn_needs_text({"fe_hz": 100.0, "load_pct": 92.0}) == (
+        "learning reached 0 %: about 22 more minutes of steady operation at 92 % load (fe 100.0 Hz)")
+
+
+@pytest.fixture(scope="module")
+def learned(tmp_path_factory):
+    """A library with one baseline learned from files at 80 % load, and the config."""
+    tmp = tmp_path_factory.mktemp("learned")
+    cfg = config(tmp)
+    assert main(["learn", "--config", str(cfg), "--drive", "drive1", *records(tmp, 14)]) == 0
+    return tmp, cfg
+
+
+def _copy(learned, tmp_path):
+    import shutil
+
+    src, cfg = learned
+    shutil.copytree(src / "state", tmp_path / "state")
+    path = tmp_path / "agent.toml"
+    path.write_text(cfg.read_text().replace(str(src / "state"), str(tmp_path / "state")))
+    return path, tmp_path / "state" / "library"
+
+
+def test_a_covered_point_is_refused_before_learning_whatever_the_amount_of_data(learned, tmp_path, capsys):
+    cfg, lib = _copy(learned, tmp_path)
+    before = {p.name: p.read_bytes() for p in lib.glob("*.json")}
+    for files in (records(tmp_path, 1, seed=950), records(tmp_path, 14, seed=960)):
+        rc, out, err = run(["learn", "--config", str(cfg), "--drive", "drive1", *files], capsys)
+        assert rc == 2 and len(err.strip().splitlines()) == 1, err
+        assert "already covers" in err and "--replace" in err and "not enough" not in err, err
+        assert {p.name: p.read_bytes() for p in lib.glob("*.json")} == before
+
+
+def test_replace_replaces_the_covering_baseline_whatever_its_name(learned, tmp_path, capsys):
+    cfg, lib = _copy(learned, tmp_path)
+    (old,) = [p.stem for p in lib.glob("*.json")]
+    rc, out, err = run(["learn", "--json", "--config", str(cfg), "--drive", "drive1", "--replace", "--name", "fresh80",
+                        *records(tmp_path, 14, load=81.0, seed=970)], capsys)
+    assert rc == 0, err
+    doc = json.loads(out)
+    assert doc["replaced"] == old and [p.stem for p in lib.glob("*.json")] == ["fresh80"]
+
+
+def test_a_name_of_a_baseline_at_another_point_is_refused(learned, tmp_path, capsys):
+    cfg, lib = _copy(learned, tmp_path)
+    (old,) = [p.stem for p in lib.glob("*.json")]
+    rc, out, err = run(["learn", "--config", str(cfg), "--drive", "drive1", "--name", old,
+                        *records(tmp_path, 2, load=60.0, seed=980)], capsys)
+    assert rc == 2 and f"--name {old}: a baseline of that name covers another operating point" in err, err
+    assert [p.stem for p in lib.glob("*.json")] == [old]

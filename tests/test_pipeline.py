@@ -24,14 +24,16 @@ from agent.modelfile import load_baseline
 from agent.evidence import AlarmConfig, Verdict
 from agent.pipeline import DriveMonitor, PipelineConfig
 from protocols.base import DriveStatus
-from runtime_support import RATE, RELAXED_GROSS, blocks_of, cut, healthy_baseline, profile, sim, splice
+from runtime_support import (RATE, RELAXED_GROSS, blocks_of, commissioned_baseline, cut, healthy_baseline, profile,
+                             sim, splice)
 
 pytestmark = pytest.mark.timeout(120)
 
 N_SPAN = int(4.0 * RATE)  # 2 windows of 2 s
 #: the tests run the pipeline with a 0.5 s hop and two-span persistence (finer than the defaults)
 CFG = PipelineConfig(hop_s=0.5, persist_hops=2, alarm=AlarmConfig(gross_false_alarms_per_month=RELAXED_GROSS))
-DEFAULTS = PipelineConfig(alarm=CFG.alarm)  #: the default timing (with the relaxed gross budget)
+DEFAULT_TIMING = PipelineConfig(alarm=CFG.alarm)  #: the default timing, with the relaxed gross budget
+SHIPPED = PipelineConfig()  #: everything as shipped, the gross budget included
 N_HOP = int(0.5 * RATE)
 BLOCK = 2500  # 0.1 s: hop ends fall on block ends, so a status belongs to the block that made it
 
@@ -77,7 +79,7 @@ def test_healthy_stream_is_good_and_normal(library):
         assert st.drive == "d1"
 
 
-@pytest.mark.parametrize("cfg", [CFG, DEFAULTS], ids=["hop0.5-persist2", "defaults"])
+@pytest.mark.parametrize("cfg", [CFG, DEFAULT_TIMING], ids=["hop0.5-persist2", "default-timing-relaxed-gross"])
 def test_fault_is_raised_within_one_span_plus_one_second(library, cfg):
     """Healthy for 6 s, then the driven gear's tooth wear (same seed: the fault appears without a
     jump in the stream); the healthy record alone is the control."""
@@ -95,6 +97,25 @@ def test_fault_is_raised_within_one_span_plus_one_second(library, cfg):
     # once raised, it stays (the fault lasts; alarm_hold_s keeps it against single lower decisions)
     assert all(st.state == "warning" for e, st in out if e >= warned[0])
     assert all(st.quality == "good" for _, st in out)
+
+
+def test_at_the_shipped_configuration_a_fault_warns_and_health_does_not(tmp_path):
+    """``PipelineConfig()`` as shipped (gross budget 0.1 false alarms a drive-month, 1 s hop) on a
+    baseline with the default commissioning's 40 stretches: severe wear warns within one span plus
+    one hop of its onset through the gross path; 16 s of healthy operation raise nothing."""
+    assert SHIPPED.alarm == AlarmConfig()
+    lib = ModelLibrary(tmp_path / "library")
+    lib.add("b80", commissioned_baseline())
+    healthy, fault = sim("healthy", 80.0, 16.0, 101), sim("gear_severe_wear", 80.0, 16.0, 101)
+    onset = int(6.0 * RATE)
+    control = feed(DriveMonitor("d1", profile(), lib, SHIPPED), [healthy])
+    assert control and all(st.state == "normal" and st.quality == "good" for _, st in control), \
+        [(st.state, st.extra["reason"]) for _, st in control]
+    out = feed(DriveMonitor("d1", profile(), lib, SHIPPED), [splice(healthy, fault, onset)])
+    warned = [(e, st) for e, st in out if st.state == "warning"]
+    assert warned and warned[0][0] <= onset + N_SPAN + int(SHIPPED.hop_s * RATE), [(e / RATE, st.state) for e, st in out]
+    assert warned[0][1].extra["reason"]["path"] == "gross"
+    assert "gear_driven" in warned[0][1].extra["reason"]["families"]
 
 
 def test_other_operating_point_is_no_model_without_alarm(library):

@@ -44,6 +44,30 @@ def run_block(block: str, cwd) -> subprocess.CompletedProcess:
     return subprocess.run(["bash", "-c", script], cwd=cwd, capture_output=True, text=True, env=env, timeout=280)
 
 
+#: a load figure as the commands print it: "load 82.7 %", "load 61-105 %", "drive1_100hz_83pct"
+LOAD_FIGURES = re.compile(r"load (\d+(?:\.\d+)?)(?:-(\d+(?:\.\d+)?))? %|_(\d+)pct\b")
+
+
+def requested_loads(block: str, default: float = 80.0) -> set[float]:
+    """The loads a block's commands ask the simulator for (``--load``, else the default)."""
+    asked = {float(x) for x in re.findall(r"--load\s+(\d+(?:\.\d+)?)", block)}
+    return asked or {default}
+
+
+def assert_loads_match(text: str, requested: set[float], tolerance: float = 5.0) -> None:
+    """Every load figure printed (load is torque over rated torque) lies within ``tolerance``
+    %-points of a load that was asked for; a range's ends of the lowest and highest asked."""
+    figures = []
+    for lo, hi, name in LOAD_FIGURES.findall(text):
+        if hi:
+            assert abs(float(lo) - min(requested)) <= tolerance and abs(float(hi) - max(requested)) <= tolerance, \
+                (lo, hi, requested)
+        figures += [float(x) for x in (lo, hi, name) if x]
+    assert figures, text[-2000:]
+    far = [f for f in figures if min(abs(f - r) for r in requested) > tolerance]
+    assert not far, (far, requested)
+
+
 def test_the_offline_tour_ends_at_the_promised_diagnosis(fresh):
     tour = shell_blocks()[0]
     assert "diagnose" in tour and "gear_severe_wear" in tour
@@ -51,6 +75,8 @@ def test_the_offline_tour_ends_at_the_promised_diagnosis(fresh):
     assert r.returncode == 0, r.stderr
     assert "Traceback" not in r.stderr
     assert "runs/severe.csv: WARNING" in r.stdout, r.stdout[-2000:]
+    assert "verdict: gear_driven most likely at fault" in r.stdout, r.stdout[-2000:]
+    assert_loads_match(r.stdout, requested_loads(tour))
     assert (fresh / "runs" / "gear80.json").is_file() and len(list((fresh / "runs").glob("healthy_*.npz"))) == 30
 
 
@@ -62,6 +88,9 @@ def test_every_other_block_runs(fresh):
         assert "Traceback" not in r.stderr
         if "events" in block:
             assert " start " in r.stdout and "learning" in r.stdout, r.stdout
+            asked = re.search(r"^load_pct = (\S+)", (fresh / "config" / "agent.toml").read_text(), flags=re.M)
+            if LOAD_FIGURES.search(r.stdout):
+                assert_loads_match(r.stdout, {float(asked.group(1))})
 
 
 def test_the_workbench_walkthrough_finds_the_offset_it_hides(fresh):
@@ -69,6 +98,20 @@ def test_the_workbench_walkthrough_finds_the_offset_it_hides(fresh):
     r = run_block(walk, fresh)
     assert r.returncode == 0, r.stderr
     assert "Traceback" not in r.stderr
+    assert_loads_match(r.stdout + r.stderr, requested_loads(walk))
     first = next(line for line in r.stdout.splitlines() if "explains" in line)
     assert first.split()[0] == "current_offset" and "SIGNIFICANT" in first, r.stdout[-2000:]
     assert (fresh / "runs" / "report" / "index.html").is_file() and (fresh / "runs" / "m2.json").is_file()
+
+
+def test_the_demo_prints_the_load_it_runs_at():
+    """``pmsm-agent demo``: the baseline it learns is named and printed at the simulated drive's load
+    (config/agent.toml, load as torque over rated torque), within 5 %-points."""
+    from agent.demo import DEFAULT_CONFIG, run_demo
+
+    lines: list[str] = []
+    run_demo(seconds=60.0, say=lines.append)
+    text = "\n".join(lines)
+    assert "baseline learned at fe" in text, text
+    asked = float(re.search(r"^load_pct = (\S+)", DEFAULT_CONFIG.read_text(), flags=re.M).group(1))
+    assert_loads_match(text, {asked})

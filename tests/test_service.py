@@ -266,7 +266,7 @@ def test_zenoh_state_documents_and_liveliness(run):
     first_good = qualities.index("good")
     assert "learning" in qualities[:first_good]
     good = docs[first_good]
-    assert abs(good["fe_hz"] - 100.0) < 1.0 and 80.0 < good["load_pct"] < 100.0
+    assert abs(good["fe_hz"] - 100.0) < 1.0 and abs(good["load_pct"] - 80.0) < 5.0  # the simulated drive runs at 80 %
     alive = [(k, kind) for k, _, kind, _ in run["alive"]]
     token = f"{PREFIX}/agent/svc/alive"
     assert alive[0] == (token, zenoh.SampleKind.PUT)

@@ -77,7 +77,7 @@ def test_starts_at_steady_state(healthy):
 
 def test_torque_matches_load(healthy):
     i_dq, _ = dq(healthy)
-    T_e = 0.8 * 14.0  # the motor's shaft torque: the generator's load and the friction, N m
+    T_e = 0.8 * 14.0  # the load is the motor's shaft torque (the generator's load and the friction), N m
     assert i_dq[1].mean() == pytest.approx(T_e / (1.5 * NP * healthy.meta["psi_m"]), rel=0.012)
     assert abs(i_dq[0].mean()) < 0.01  # i_d = 0 control
 
@@ -94,7 +94,7 @@ def test_energy_balance(healthy):
     i_dq, _ = dq(healthy)
     copper = 1.5 * healthy.meta["R_s"] * np.mean(np.sum(i_dq ** 2, axis=0))
     p_fric = (RIG.B_1 + RIG.B_2) * W_M ** 2
-    assert p_in == pytest.approx(0.8 * 14.0 * W_M + copper, rel=0.02)  # the motor's nominal shaft torque
+    assert p_in == pytest.approx(0.8 * 14.0 * W_M + copper, rel=0.02)  # nominal load: the shaft torque, friction included
     assert p_in == pytest.approx(healthy.meta["T_load"] * W_M + p_fric + copper, rel=1e-3)
 
 
@@ -266,7 +266,7 @@ def test_bad_names_raise_input_error():
         simulate(GEAR, seconds=0.01, effects={"flux_harmonics": {"psi_5": -0.01}})
     with pytest.raises(InputError):
         simulate(GEAR, load_pct=-5.0, seconds=0.01)
-    assert set(CONDITIONS) == {"healthy", "gear_slight_wear", "gear_severe_wear", "gear_no_lubricant",
+    assert set(CONDITIONS) == {"healthy", "gear_slight_wear", "gear_severe_wear", "gear_no_lubricant", "gear_driving_wear",
                                "chain_offset", "chain_slight_wear", "chain_missing_tooth"}
 
 

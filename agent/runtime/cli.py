@@ -35,6 +35,12 @@ def cmd_events(args) -> None:
 
     if args.limit < 0:
         raise InputError(f"--limit must be >= 0, got {args.limit}")
+    if args.config and args.drive:
+        from agent.runtime.config import check_config
+
+        drives = [d.name for d in check_config(args.config).drives]
+        if args.drive not in drives:
+            raise InputError(f"--drive {args.drive!r}: no such drive in {args.config} (drives: {', '.join(drives)})")
     path = journal_path(_state_dir(args))
     kinds = [k for item in args.kind or () for k in item.split(",") if k]
     with Journal(path, readonly=True) as j:

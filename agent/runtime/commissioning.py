@@ -6,10 +6,15 @@ files, from the drive's configured live source. The baseline is written into the
 only when learning completes and every check passes; otherwise the command exits 2 with the
 reason and the library is unchanged:
 
-* not enough healthy evidence (``pipeline.learn_stretches`` stretches over ``pipeline.learn_min_s``);
+* not enough healthy evidence (``pipeline.learn_stretches`` stretches over ``pipeline.learn_min_s``):
+  the refusal says how many more minutes of steady operation, at which load, the pipeline's own
+  rule needs (:attr:`agent.pipeline.DriveMonitor.learn_remaining_s`);
 * speed or load spread beyond the operating-point tolerance (``pipeline.schedule_*_tol``);
 * too many unusable spans (NaN, saturation) or a drive that is not running;
-* a valid baseline already covers the operating point (``--replace`` with its ``--name`` replaces it);
+* a valid baseline already covers the operating point, checked before any learning (from files: their
+  operating point; live: the first span); ``--replace`` replaces the baseline that covers it, whatever
+  its name (a different ``--name`` writes the new one and deletes the old); a ``--name`` that belongs
+  to a baseline at another point is refused;
 * from files, the training-data checks of :func:`agent.training.check_training` (one line naming the
   files): their operating points spread beyond the tolerance, or a file reads as faulty against the
   baseline it replaces (before learning) or against the others (after learning, before the write).
@@ -21,8 +26,11 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import sys
 import time
+
+import numpy as np
 
 from agent.errors import InputError
 
@@ -53,23 +61,32 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
           progress=None, max_seconds: float | None = None, accept_fault_evidence: bool = False) -> dict:
     """Learn a baseline for ``drive_name``; returns what was learned, raises InputError with the
     reason when learning refuses or the data runs out (``progress(pct, text)`` as it goes)."""
-    from agent.library import ModelLibrary, Schedule
-    from agent.pipeline import DriveMonitor
-    from agent.runtime.service import build_source, pipeline_config
     from dataclasses import replace as replace_field
 
-    from agent.training import check_training, training_record
+    from agent.cli import distinct_records
+    from agent.library import ModelLibrary, Schedule
+    from agent.pipeline import DriveMonitor, covered_text
+    from agent.runtime.service import build_source, pipeline_config
+    from agent.training import check_spread, check_training, training_record
 
     drive = _drive(cfg, drive_name)
+    distinct_records(files)
     p = cfg.pipeline
     library = ModelLibrary(cfg.library.path, Schedule(p.schedule_fe_tol_hz, p.schedule_load_tol_pct,
                                                       p.schedule_hysteresis))
     findings: list[str] = []
     vet = None
-    if files:  # the training-data checks (agent.training): spread and the replaced baseline's reading first
+    if files:  # before any learning: spread, the baseline that covers the point, its reading of the files
         training = _file_records(files, drive.drive_profile)
-        replaced = library.baselines.get(name) if replace and name else None
-        findings += check_training(training, library.schedule, replaced=replaced, replaced_name=f"baseline {name}",
+        check_spread(training, library.schedule)
+        op = {k: float(np.median([r.operating_point[k] for r in training])) for k in ("fe_hz", "load_pct")}
+        covering = library.select(op["fe_hz"], op["load_pct"])
+        if covering is not None and not replace:
+            raise InputError(f"learning refused for drive {drive.name}: {covered_text(covering, op)}; the library "
+                             f"is unchanged")
+        _check_name(library, name, covering)
+        replaced = library.baselines[covering] if covering is not None else None
+        findings += check_training(training, library.schedule, replaced=replaced, replaced_name=f"baseline {covering}",
                                    accept_fault_evidence=accept_fault_evidence)
 
         def vet(baseline):  # then each file against the others, with the learned model, before the write
@@ -84,9 +101,13 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
     def on_event(kind, detail):
         events.append((kind, detail))
         if kind == "learning" and progress is not None:
-            progress(detail.get("progress_pct", 0.0), detail.get("phase", ""))
+            progress(detail.get("progress_pct", 0.0), detail.get("phase", ""), detail.get("remaining_s", 0.0))
 
+    if not files:
+        _check_name(library, name, None)
     pcfg = pipeline_config(cfg)
+    lengths: list[float] = []  #: s, the files learned from
+    seen: list = []  #: every status of the learning (why it made no progress)
     monitor = DriveMonitor(drive.name, drive.drive_profile, library, pcfg, on_event=on_event)
     monitor.start_learning(name, replace=replace, vet=vet)
     if files:
@@ -97,9 +118,10 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
         block = max(1, int(round(0.1 * rate)))
         for path in files:
             rec = load_record(path, drive.drive_profile)
+            lengths.append(rec.n / rate)
             for start in range(0, rec.n - block + 1, block):
                 cut = slice(start, start + block)
-                monitor.process(Block(drive.name, rate, rec.v_abc[:, cut], rec.i_abc[:, cut], first + start, 0,
+                seen += monitor.process(Block(drive.name, rate, rec.v_abc[:, cut], rec.i_abc[:, cut], first + start, 0,
                                       None if rec.theta_e is None else rec.theta_e[cut],
                                       None if rec.omega_e is None else rec.omega_e[cut]))
                 if not monitor.learning:
@@ -119,7 +141,7 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
             while monitor.learning and (t_end is None or time.monotonic() < t_end):
                 blk = source.read(timeout=0.5)
                 if blk is not None:
-                    monitor.process(blk)
+                    seen += monitor.process(blk)
                 elif getattr(source, "finished", False):
                     break
         finally:
@@ -128,11 +150,26 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
     if refused:
         raise InputError(f"learning refused for drive {drive.name}: {refused[-1]}; the library is unchanged")
     learned = [d for k, d in events if k == "learned"]
+    idle = [st.extra["reason"] for st in seen if str(st.extra.get("reason") or "").startswith("not running")]
+    if not learned and seen and len(idle) == len(seen):
+        raise InputError(f"nothing to learn for drive {drive.name}: the drive was not running in any span "
+                         f"({idle[-1]}); the library is unchanged")
     if not learned:
-        pct = monitor.learn_progress_pct
-        raise InputError(f"not enough healthy data for drive {drive.name}: learning reached {pct:.0f} % "
-                         f"(needs {p.learn_windows} spans, then {p.learn_stretches} stretches of {p.stretch_s:g} s "
-                         f"over at least {p.learn_min_s:g} s of steady operation); the library is unchanged")
+        span_s = pcfg.window_s * pcfg.span_windows
+        usable = float(np.mean(lengths)) - (span_s - pcfg.hop_s) if lengths else 0.0
+        per_file = "" if not files else (
+            f"; each file gives at most its length less {span_s - pcfg.hop_s:g} s (its first span fills the "
+            f"buffer)" + (f": about {_count(math.ceil(monitor.learn_remaining_s / usable - 1e-9), 'more file')} "
+                          f"of {np.mean(lengths):.0f} s" if usable > 0 else "")
+            + f", and a load or speed move holds {pcfg.alarm.settle_s:g} s more")
+        short = [f for f, n in zip(files, lengths) if n < span_s]
+        per_file += f"; shorter than one span ({span_s:g} s), so nothing learned from: {', '.join(short)}" if short else ""
+        stopped = f"; the drive was not running in {len(idle)} of {len(seen)} spans" if idle else ""
+        raise InputError(f"not enough healthy data for drive {drive.name}: "
+                         f"{monitor.learn_needs_text(monitor.learning_point)}{stopped} (the rule: {p.learn_windows} spans of "
+                         f"{span_s:g} s for the parameters, then {p.learn_stretches} stretches of {p.stretch_s:g} s "
+                         f"over at least {p.learn_min_s / 60:g} min of steady operation, {_minutes(pcfg.learn_total_s)} "
+                         f"in all{per_file}); the library is unchanged")
     doc = {"drive": drive.name, **learned[-1], "accepted_fault_evidence": findings}
     if findings:
         from agent.runtime.journal import Journal
@@ -145,14 +182,32 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
     return doc
 
 
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}{'' if n == 1 else 's'}"
+
+
+def _minutes(seconds: float) -> str:
+    return f"{seconds / 60:.1f} min" if seconds >= 90 else f"{seconds:g} s"
+
+
+def _check_name(library, name: str | None, covering: str | None) -> None:
+    """``--name`` must not be a baseline at another operating point (it would be overwritten)."""
+    if name is not None and name in library.baselines and name != covering:
+        op = library.baselines[name].operating_point
+        raise InputError(f"--name {name}: a baseline of that name covers another operating point (fe "
+                         f"{op['fe_hz']:.2f} Hz, load {op['load_pct']:.1f} %); choose another name; the library is "
+                         f"unchanged")
+
+
 def cmd_learn(args) -> None:
     from agent.cli import warn_fault_evidence
     from agent.runtime.config import check_config
 
     cfg = check_config(args.config)
 
-    def progress(pct, phase):
-        log.info("learning %s: %.0f %%%s", args.drive, pct, f" ({phase})" if phase else "")
+    def progress(pct, phase, remaining_s):
+        log.info("learning %s: %.0f %%%s, about %s more of steady operation", args.drive, pct,
+                 f" ({phase})" if phase else "", _minutes(remaining_s))
 
     doc = learn(cfg, args.drive, args.data, name=args.name, replace=args.replace, progress=progress,
                 max_seconds=args.max_seconds, accept_fault_evidence=args.accept_fault_evidence)
@@ -169,6 +224,7 @@ def cmd_learn(args) -> None:
 def add_commands(sub, common) -> None:
     """Add ``learn`` to the ``pmsm-agent`` subparsers."""
     from agent.cli import accept_fault_evidence_flag
+    from agent.cliargs import number
 
     s = sub.add_parser("learn", parents=[common], help="commission a baseline for one drive (from files or the live source)")
     s.add_argument("--config", required=True, metavar="FILE", help="agent config TOML (the drive, its library)")
@@ -176,7 +232,7 @@ def add_commands(sub, common) -> None:
     s.add_argument("--name", help="baseline name (default: <drive>_<fe>hz_<load>pct)")
     s.add_argument("--replace", action="store_true",
                    help="replace the baseline of this --name if it covers the operating point (never implicit)")
-    s.add_argument("--max-seconds", type=float, default=None,
+    s.add_argument("--max-seconds", type=number(0, None, low_open=True, unit="s"), default=None,
                    help="live source only: give up after this many seconds of wall time")
     accept_fault_evidence_flag(s)
     s.add_argument("data", nargs="*", metavar="REC", help="recorded files (CSV/NPZ/TDMS); none: the live source")

@@ -336,7 +336,7 @@ class Service:
                 self._publish(status)
                 if self._auto_learn_due(d, status):
                     d.auto_learned = True
-                    d.monitor.start_learning(f"{d.name}_{status.fe_hz:.0f}hz_{status.load_pct:.0f}pct")
+                    d.monitor.start_learning()  # named by the learned operating point
         return busy
 
     def status_line(self, period_s: float) -> str:
@@ -378,9 +378,8 @@ class Service:
                 self.plc.acknowledge(cmd.drive)
 
     def _relearn(self, drive: str, why: str) -> None:
-        mon = self.drives[drive].monitor
-        st = mon.status
-        mon.start_learning(f"{drive}_{st.fe_hz:.0f}hz_{st.load_pct:.0f}pct")
+        """A new baseline for the point the drive runs at: it replaces the one covering it."""
+        self.drives[drive].monitor.start_learning(replace=True)
         self.journal.record("learning", drive, detail={"event": why})
 
     def run(self, max_seconds: float | None = None) -> int:

@@ -70,6 +70,10 @@ CONDITIONS: dict[str, Condition] = {
     # wear along a whole tooth: larger, narrower pulse (k = 1..3 ~ 0.25, 0.17, 0.09 N m), more mesh loss
     "gear_severe_wear": Condition("gear", 1.5, (Pulse("gl", 0.71, 0.5),),
                                   "tooth worn along its face, extra sliding loss"),
+    # the same wear on one tooth of the driving gear (on the motor shaft): a pulse per motor revolution,
+    # k = 1..3 ~ 0.25, 0.17, 0.09 N m at f_gm (not one of the paper's conditions: the family verdict's test)
+    "gear_driving_wear": Condition("gear", 1.5, (Pulse("gm", 0.71, 0.5),),
+                                   "tooth of the driving gear worn along its face"),
     # dry mesh: friction x2.5; the friction amplifies the gear's ovality (twice per driven revolution)
     "gear_no_lubricant": Condition("gear", 2.5, (Harmonics("gl", (0.03, 0.15, 0.03)),),
                                    "no lubricant on either gear"),

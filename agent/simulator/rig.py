@@ -21,7 +21,9 @@ class RigParams:
     R_s: float = 2.0  #: ohm, stator resistance per phase at 20 C
     L_d: float = 15e-3  #: H, d-axis inductance
     L_q: float = 28e-3  #: H, q-axis inductance (unsaturated)
-    psi_m: float = 0.25  #: Wb, PM flux linkage (peak) at 20 C -> 14 N m at i_q = 9.33 A
+    #: Wb, PM flux linkage (peak) at 20 C: 0.25 Wb at the magnet's rated-load temperature (60 C), so
+    #: that rated current (6.6 A rms, i_q = 9.33 A) gives rated torque (14 N m) hot, as a nameplate rates it
+    psi_m: float = 0.2626
     alpha_cu: float = 0.00393  #: 1/K, copper temperature coefficient of R_s
     alpha_pm: float = -0.0012  #: 1/K, NdFeB remanence temperature coefficient of psi_m
     # --- thermal operating point (constant within a record) ---

@@ -132,12 +132,13 @@ def cmd_explain(args) -> None:
 
 
 def cmd_add_effect(args) -> None:
-    from agent.cli import warn_fault_evidence
+    from agent.cli import distinct_records, warn_fault_evidence
     from agent.effects import get, params_text
     from agent.modelfile import save_baseline
     from agent.workbench.explain import add_effects
 
     effects = [get(e).id for e in args.effect]
+    distinct_records(args.data)
     if Path(args.out).exists():
         raise InputError(f"--out {args.out}: exists; a model version is never overwritten (choose a new file)")
     base, recs, preps = _load(args, args.model)
@@ -244,13 +245,13 @@ def add_commands(sub, common) -> None:
     s.add_argument("data", nargs="+", help="records (CSV, NPZ, TDMS)")
     s.set_defaults(func=cmd_compare)
     s = msub.add_parser("explain", parents=[common], help="rank the physical effects the model lacks")
-    s.add_argument("--model", required=True)
+    s.add_argument("--model", required=True, help="model file (JSON)")
     s.add_argument("--effect", action="append", metavar="ID", help="only these candidates (repeatable)")
     s.add_argument("--report", metavar="DIR", help="write an HTML report with plots into DIR")
-    s.add_argument("data", nargs="+")
+    s.add_argument("data", nargs="+", help="records (CSV, NPZ, TDMS)")
     s.set_defaults(func=cmd_explain)
     s = msub.add_parser("add-effect", parents=[common], help="refit with an effect, write a new model version")
-    s.add_argument("--model", required=True)
+    s.add_argument("--model", required=True, help="model file to refit (JSON; it is never overwritten)")
     s.add_argument("--effect", required=True, action="append", metavar="ID", help="effect id (repeatable)")
     s.add_argument("--out", required=True, help="new model file")
     from agent.cli import accept_fault_evidence_flag

@@ -8,8 +8,12 @@ the same model on the same records gives the same figure here, in ``explain``, `
 ``history`` and the report. An unstable free run has no figure, only a note. With several models
 and operating points: a Table-5-like matrix. "Where": the phase-residual spectrum's largest peaks
 labelled by harmonic order of fe (abc and dq), fault families and the effects with that signature;
-the residual binned over electrical angle, phase current and time; whiteness and input
-cross-correlation of the one-step residual with a 99 % band (MATLAB ``resid``).
+the residual binned over electrical angle, phase current and time; the phase residuals' DC with its
+batch-means t (an offset); whiteness and input cross-correlation of the one-step residual with a 99 %
+band (MATLAB ``resid``), and its correlation with the voltage's sample-to-sample change (a delay).
+A peak at a fault line or a harmonic of fe is reported at that line's exact frequency (``freq_hz``,
+from :mod:`agent.frequencies`; ``bin_hz`` is the FFT bin it was found in). Each finding's
+``effects`` are the ones its own evidence points to (none when the evidence is absent).
 """
 
 from __future__ import annotations
@@ -25,6 +29,11 @@ from agent.workbench.fitting import Prepared, fit_pct, flux_adapted, heldout
 
 MAX_LAG = 40  #: samples, correlation lags
 Z99 = 2.576  #: two-sided 99 % normal quantile
+BATCHES, T99_BATCHES = 20, 2.861  #: batch means of a phase residual's DC, and the two-sided 99 % t quantile (19 dof)
+#: |correlation| of the q residual with the voltage's sample-to-sample change (lags -1..1) that
+#: reads as a voltage delay. On the rig simulator: delay 1 sample 0.83, 0.3 samples 0.30; none
+#: (healthy, severe wear, current offset 0.02-0.1 A, dead time, flux harmonics, gain mismatch) 0.024 at most
+DELAY_R = 0.05
 N_PEAKS = 6
 ANGLE_BINS, CURRENT_BINS, TIME_BINS = 36, 24, 10
 
@@ -68,19 +77,30 @@ def table(models: dict, preps: list[Prepared]) -> list[dict]:
             for (fe, load), ps in sorted(groups.items())]
 
 
-def _label(f: float, fe: float, df: float, families: dict) -> tuple[str, list[str]]:
-    """Likely origin of a residual line at ``f`` Hz: harmonic of fe (abc and dq), fault family."""
-    labels, effects = [], []
+def _label(f: float, fe: float, df: float, families: dict) -> tuple[str, list[str], float | None]:
+    """Likely origin of a residual line in the bin at ``f`` Hz: harmonic of fe (abc and dq), fault
+    family; and the exact frequency (Hz) of what it was matched to (a fault line from
+    :mod:`agent.frequencies` before a harmonic; None: neither)."""
+    labels, effects, exact = [], [], None
     k = int(round(f / fe))
     if abs(f - k * fe) <= 1.5 * df:
         labels.append("DC" if k == 0 else f"{k} fe in abc (dq: {abs(k - 1)} fe)")
         effects += [e.id for e in EFFECTS.values() if k in e.abc_orders or abs(k - 1) in e.dq_orders]
-    for fam, lines in families.items():
-        for line in lines:
-            if abs(f - line["freq_hz"]) <= 1.5 * df:
-                labels.append(f"{fam} k={line['k']} sideband")
-                effects += ["speed_ripple"] if fam == "gear_driving" and line["k"] == 1 else []
-    return "; ".join(labels) or f"{f / fe:.2f} fe (no harmonic or fault line)", sorted(set(effects))
+        exact = k * fe
+    lines = sorted(((abs(f - line["freq_hz"]), fam, line) for fam, items in families.items() for line in items
+                    if abs(f - line["freq_hz"]) <= 1.5 * df), key=lambda x: x[0])
+    for _, fam, line in lines:
+        labels.append(f"{fam} k={line['k']} sideband")
+        effects += ["speed_ripple"] if fam == "gear_driving" and line["k"] == 1 else []
+    if lines:
+        exact = lines[0][2]["freq_hz"]
+    return "; ".join(labels) or f"{f / fe:.2f} fe (no harmonic or fault line)", sorted(set(effects)), exact
+
+
+def _batch_t(x: np.ndarray, batches: int = BATCHES) -> float:
+    """t statistic of the mean of ``x`` by batch means (robust to the samples' autocorrelation)."""
+    means = np.array([b.mean() for b in np.array_split(x, batches)])
+    return float(means.mean() / max(means.std(ddof=1) / np.sqrt(batches), 1e-300))
 
 
 def _corr(x: np.ndarray, y: np.ndarray, lags: np.ndarray) -> np.ndarray:
@@ -112,10 +132,10 @@ def where(baseline, preps: list[Prepared], preds: list[np.ndarray]) -> tuple[lis
     families = fault_frequencies(prof, fe, 3)
     peaks = []
     for i in sorted(idx, key=lambda i: -amp[i]):
-        label, effects = _label(freqs[i], fe, df, families)
+        label, effects, exact = _label(freqs[i], fe, df, families)
         over = "above TH3" if same_grid and amp[i] > th.th3[i] else "above TH2" if same_grid and amp[i] > th.th2[i] else ""
-        peaks.append({"freq_hz": float(freqs[i]), "amplitude_a": float(amp[i]), "label": label,
-                      "effects": effects, "threshold": over})
+        peaks.append({"freq_hz": float(freqs[i] if exact is None else exact), "bin_hz": float(freqs[i]),
+                      "amplitude_a": float(amp[i]), "label": label, "effects": effects, "threshold": over})
     data["peaks"] = peaks
     found += [{"kind": "spectrum_peak", **pk} for pk in peaks]
     # 2. binned residual: over electrical angle, phase-a current, time
@@ -125,8 +145,12 @@ def where(baseline, preps: list[Prepared], preds: list[np.ndarray]) -> tuple[lis
     ang = np.minimum((theta / (2 * np.pi) * ANGLE_BINS).astype(int), ANGLE_BINS - 1)
     by_angle = np.array([[np.bincount(ang, r[ax], ANGLE_BINS)[b] for b in range(ANGLE_BINS)] for ax in (0, 1)])
     by_angle /= np.maximum(np.bincount(ang, minlength=ANGLE_BINS), 1)
-    ra = np.concatenate([dq_to_abc(x, p.sig.theta_e)[0] for x, p in zip(res, preps)])
+    r_abc = np.hstack([dq_to_abc(x, p.sig.theta_e) for x, p in zip(res, preps)])
+    ra = r_abc[0]
     ia = np.concatenate([p.sig.i_abc[0] for p in preps])
+    dc = r_abc.mean(axis=1)
+    dc_t = np.array([_batch_t(x) for x in r_abc])
+    offset = bool(np.any(np.abs(dc_t) > T99_BATCHES))
     edges = np.linspace(ia.min(), ia.max(), CURRENT_BINS + 1)
     cb = np.clip(np.digitize(ia, edges) - 1, 0, CURRENT_BINS - 1)
     by_current = np.bincount(cb, ra, CURRENT_BINS) / np.maximum(np.bincount(cb, minlength=CURRENT_BINS), 1)
@@ -144,7 +168,11 @@ def where(baseline, preps: list[Prepared], preds: list[np.ndarray]) -> tuple[lis
         {"kind": "current", "summary": f"phase-a residual: step {step:+.4f} A across the current's sign "
          f"(dead time), slope {slope:+.5f} A/A (gain), mean {np.mean(ra):+.4f} A (offset)",
          "sign_step_a": step, "slope": slope, "mean_a": float(np.mean(ra)),
-         "effects": ["inverter_deadtime", "current_gain_mismatch", "current_offset"]},
+         "effects": ["inverter_deadtime", "current_gain_mismatch"]},
+        {"kind": "offset", "summary": "phase residual DC a/b/c " + "/".join(f"{x:+.4f}" for x in dc) + " A (t "
+         + "/".join(f"{x:.1f}" for x in dc_t) + f" over {BATCHES} batches): "
+         + ("a current-sensor offset" if offset else f"none (|t| <= {T99_BATCHES})"),
+         "dc_a": dc.tolist(), "t": dc_t.tolist(), "effects": ["current_offset"] if offset else []},
         {"kind": "time", "summary": f"residual RMS changes by {trend:+.4f} A from the first to the last tenth "
          f"of the records", "trend_a": trend, "effects": ["resistance_drift"]},
     ]
@@ -155,6 +183,12 @@ def where(baseline, preps: list[Prepared], preds: list[np.ndarray]) -> tuple[lis
     band = Z99 / np.sqrt(e1.shape[1])
     auto = np.array([_corr(e1[ax], e1[ax], lags[MAX_LAG + 1:]) for ax in (0, 1)])
     cross = np.array([_corr(e1[1], v[ax], lags) for ax in (0, 1)])
+    # a delay makes the residual follow the voltage's sample-to-sample change, which carries no slow
+    # component: an offset (or a fault's ripple) correlates with v at every lag alike, never with dv
+    dv = np.hstack([np.zeros((2, 1)), np.diff(v, axis=1)])
+    delay_r = float(np.max(np.abs(_corr(e1[1], dv[1], np.arange(-1, 2)))))
+    delay = delay_r > DELAY_R
+    slow = not delay and np.max(np.abs(cross)) > band
     data.update(lags=lags, auto=auto, cross=cross, band=band)
     found += [
         {"kind": "whiteness", "summary": f"one-step residual autocorrelation outside the 99 % band at "
@@ -162,8 +196,12 @@ def where(baseline, preps: list[Prepared], preds: list[np.ndarray]) -> tuple[lis
          "band": band, "outside": [float(np.mean(np.abs(a) > band)) for a in auto],
          "max_abs": [float(np.max(np.abs(a))) for a in auto]},
         {"kind": "cross_correlation", "summary": f"q residual vs v_d / v_q: max |r| {np.max(np.abs(cross[0])):.3f} / "
-         f"{np.max(np.abs(cross[1])):.3f} (band {band:.3f})", "max_abs": [float(np.max(np.abs(c))) for c in cross],
-         "effects": ["voltage_delay"]},
+         f"{np.max(np.abs(cross[1])):.3f} (band {band:.3f}); vs the sample-to-sample change of v_q at lags -1..1: "
+         f"{delay_r:.3f} ({'a voltage delay' if delay else f'no delay: <= {DELAY_R}'})"
+         + ("; the correlation is slow, alike at every lag: " + ("the phase residual's DC (current offset)" if offset
+            else "a slow component common to residual and voltage, not a delay") if slow else ""),
+         "max_abs": [float(np.max(np.abs(c))) for c in cross], "delay_r": delay_r,
+         "effects": (["voltage_delay"] if delay else []) + (["current_offset"] if slow and offset else [])},
     ]
     return found, data
 
