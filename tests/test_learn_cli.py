@@ -14,7 +14,9 @@ from runtime_support import PROFILE_PATH, sim
 pytestmark = pytest.mark.timeout(300)
 
 
-def config(tmp_path, learn_stretches=8):
+def config(tmp_path, learn_stretches=8, **pipeline):
+    """An agent config with one simulated drive whose commissioning is short; ``pipeline`` keys override."""
+    keys = {"learn_windows": 6, "learn_stretches": learn_stretches, "learn_min_s": 0.0, "stretch_s": 4.0, **pipeline}
     path = tmp_path / "agent.toml"
     path.write_text(f"""
 schema_version = 1
@@ -29,11 +31,7 @@ profile = "{PROFILE_PATH}"
 kind = "simulated"
 
 [pipeline]
-learn_windows = 6
-learn_stretches = {learn_stretches}
-learn_min_s = 0.0
-stretch_s = 4.0
-""")
+""" + "".join(f"{k} = {v}\n" for k, v in keys.items()))
     return path
 
 

@@ -155,29 +155,9 @@ def test_add_effect_says_whether_it_relearned_the_thresholds(files, tmp_path, ca
 # --- learn: the agent's commissioning from files ---------------------------------------------------
 
 def _config(tmp_path: Path) -> Path:
-    path = tmp_path / "agent.toml"
-    path.write_text(f"""
-schema_version = 1
-agent_id = "guard"
-state_dir = "{tmp_path / 'state'}"
+    from tests.test_learn_cli import config
 
-[[drives]]
-name = "drive1"
-profile = "{PROFILE_PATH}"
-
-[drives.source]
-kind = "simulated"
-
-[pipeline]
-window_s = 0.5
-hop_s = 0.5
-learn_windows = 4
-learn_stretches = 4
-learn_min_s = 0.0
-stretch_s = 0.5
-settle_s = 0.5
-""")
-    return path
+    return config(tmp_path, learn_stretches=4, window_s=0.5, hop_s=0.5, learn_windows=4, stretch_s=0.5, settle_s=0.5)
 
 
 def _library_state(tmp_path: Path) -> dict:
