@@ -248,29 +248,41 @@ def table(results: list, effects) -> str:
     return "\n".join(lines)
 
 
+def effect_size(r: dict, row: dict) -> float | None:
+    """A hidden effect's own size on its drive: the part of the control's held-out NRMSE beyond what
+    the same drive's null set leaves (sqrt(ctrl^2 - ctrl_null^2), the base model's own misses taken
+    out), over the noise floor; None where either is missing."""
+    null = r.get("null", {})
+    c, c0, f = row["nrmse_control"], null.get("nrmse_control"), row["noise_floor"]
+    if c is None or c0 is None or not f:
+        return None
+    return float(np.sqrt(max(c * c - c0 * c0, 0.0))) / f
+
+
 def power_plot(results: list, effects, path: Path) -> Path:
-    """Detected (significant) fraction against the hidden effect's size: the control's held-out
-    NRMSE over its noise floor, binned; one line per effect."""
+    """Detected (significant) fraction against the hidden effect's own size (:func:`effect_size`),
+    binned; one line per effect, each point labelled with its drives."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 4))
-    edges = np.array([0, 1.5, 3, 6, 12, 25, 50, np.inf])
-    centres = np.array([1, 2, 4, 8, 16, 32, 64])
+    edges = np.array([0, 0.5, 1, 2, 4, 8, 16, 32, np.inf])
+    centres = np.array([0.35, 0.7, 1.4, 2.8, 5.6, 11, 22, 45])
     for eff in effects:
-        pts = [(row["nrmse_control"] / max(row["noise_floor"] or 1e-12, 1e-12), row["significant"])
-               for r in results for row in r["rows"] if row["effect"] == eff and row["revealable"]
-               and row["nrmse_control"] is not None and row["noise_floor"]]
+        pts = [(size, row["significant"]) for r in results for row in r["rows"]
+               if row["effect"] == eff and row["revealable"] and (size := effect_size(r, row)) is not None]
         if not pts:
             continue
         x, y = np.array(pts, dtype=float).T
         idx = np.digitize(x, edges) - 1
         frac = [(centres[b], y[idx == b].mean(), (idx == b).sum()) for b in range(len(centres)) if (idx == b).any()]
-        ax.plot([f[0] for f in frac], [f[1] for f in frac], "o-", label=eff)
+        line, = ax.plot([f[0] for f in frac], [f[1] for f in frac], "o-", label=eff)
+        for xc, yc, n in frac:
+            ax.annotate(str(n), (xc, yc), textcoords="offset points", xytext=(3, 3), fontsize=6, color=line.get_color())
     ax.set_xscale("log")
-    ax.set_xlabel("hidden effect's size: the control's held-out NRMSE / noise floor")
+    ax.set_xlabel("hidden effect's own size: its share of the control's NRMSE / noise floor (labels: drives)")
     ax.set_ylabel("detected (significant) fraction")
     ax.set_ylim(-0.02, 1.02)
     ax.grid(True, alpha=0.3)
