@@ -176,7 +176,9 @@ def measure_payloads(endpoint: str, drives_per_gateway: int) -> dict:
     watcher = client(endpoint)
     sub = watcher.declare_subscriber("pmsm/**", on_sample)
     names = [f"{STATUS_KINDS[i % len(STATUS_KINDS)][0].replace('_', '')}-{i:03d}" for i in range(drives_per_gateway)]
+    names[-2:] = ["nopeaksgear-000", "nopeakschain-001"]  # the same statuses without the spectral peaks
     kind_of = {n: STATUS_KINDS[i % len(STATUS_KINDS)] for i, n in enumerate(names)}
+    kind_of.update({"nopeaksgear-000": STATUS_KINDS[1], "nopeakschain-001": STATUS_KINDS[3]})
     # the gateway's own providers, in the shape of agent/runtime/service.py (_diagnostics, _health)
     source_stats = {"opens": 1, "blocks": 123456, "samples": 3086400000, "errors": 0, "crc_errors": 0,
                     "gaps": 0, "reconnects": 0, "last_error": ""}
@@ -191,7 +193,10 @@ def measure_payloads(endpoint: str, drives_per_gateway: int) -> dict:
         time.sleep(0.3)
         for i, name in enumerate(names):
             _, profile_name, state = kind_of[name]
-            sink.publish(realistic_status(name, profile_name, state, seed=i))
+            status = realistic_status(name, profile_name, state, seed=i)
+            if name.startswith("nopeaks"):
+                status.peaks = []
+            sink.publish(status)
         end = time.monotonic() + 10
         while time.monotonic() < end:
             with lock:
@@ -211,6 +216,11 @@ def measure_payloads(endpoint: str, drives_per_gateway: int) -> dict:
             raise RuntimeError(f"no state of kind {label} arrived")
         out[f"state_{label}"] = sum(got) / len(got)
     out["state_mean"] = sum(out[f"state_{k}"] for k, _, _ in STATUS_KINDS) / len(STATUS_KINDS)
+    for label in ("gear", "chain"):
+        got = sizes.get(f"state:nopeaks{label}", [])
+        if not got:
+            raise RuntimeError(f"no state of kind nopeaks{label} arrived")
+        out[f"state_{label}_alarmed_without_peaks"] = sum(got) / len(got)
     for kind in ("diagnostics", "health"):
         if kind not in sizes:
             raise RuntimeError(f"no {kind} arrived")
@@ -438,6 +448,13 @@ def measure_postgres(tmp: Path, drives: int, trend_rows: int, event_rows: int) -
                                        ).fetchone()
             sizes[table] = {"rows": count, "total_bytes": total, "heap_bytes": heap,
                             "bytes_per_row": total / count, "heap_bytes_per_row": heap / count}
+        # retention as the writer runs it: every trend row is older than 0 days (events are kept)
+        trend_count = sizes["evidence_trend"]["rows"]
+        del_cpu0, del_wall0 = cpu_seconds(backend), time.perf_counter()
+        deleted = store.apply_retention(conn, 0.0, 1e6)["evidence_trend"]
+        delete_wall, delete_cpu = time.perf_counter() - del_wall0, cpu_seconds(backend) - del_cpu0
+        if deleted != trend_count:
+            raise RuntimeError(f"retention deleted {deleted} of {trend_count} trend rows")
         version = conn.execute("SHOW server_version").fetchone()[0]
         conn.close()
     finally:
@@ -445,6 +462,8 @@ def measure_postgres(tmp: Path, drives: int, trend_rows: int, event_rows: int) -
     return {"server_version": version, "rows_written": written, "batches": batches, "batch_size": BATCH_SIZE,
             "wall_s": wall, "rows_per_s": written / wall, "historian_cpu_us_per_row": 1e6 * cpu / written,
             "server_backend_cpu_us_per_row": 1e6 * server_cpu / written, "tables": sizes,
+            "retention_deleted_rows_per_s": deleted / delete_wall,
+            "retention_backend_cpu_us_per_row": 1e6 * delete_cpu / deleted,
             "note": "fsync=off, full_page_writes=off (tests/pg_support.py): the server's disk is not in these figures"}
 
 
@@ -580,6 +599,8 @@ def table(fig: dict) -> str:
     for label, _, _ in STATUS_KINDS:
         lines.append(f"| state payload, {label} | {p[f'state_{label}']:.0f} B | real ZenohSink put |")
     lines += [f"| diagnostics payload | {p['diagnostics']:.0f} B | per drive, every {DIAGNOSTICS_PERIOD_S:g} s |",
+              f"| state payload without peaks, gear / chain alarmed | {p['state_gear_alarmed_without_peaks']:.0f} / "
+              f"{p['state_chain_alarmed_without_peaks']:.0f} B | the same statuses, peaks = [] |",
               f"| health payload ({p['health_drives']} drives) | {p['health']:.0f} B | per gateway, every "
               f"{DIAGNOSTICS_PERIOD_S:g} s |"]
     for r in fig["router"]:
@@ -591,6 +612,8 @@ def table(fig: dict) -> str:
               f"per sample | {ing['samples']} samples, {ing['appends']} fsync'd appends |",
               f"| PostgreSQL writer path | {pg['rows_per_s']:.0f} rows/s | batches of {pg['batch_size']}, "
               f"{pg['rows_written']} rows |",
+              f"| retention delete (apply_retention) | {pg['retention_deleted_rows_per_s']:.0f} rows/s, "
+              f"{pg['retention_backend_cpu_us_per_row']:.1f} us backend CPU per row | every trend row, chunks of 10 000 |",
               f"| historian CPU per row written | {pg['historian_cpu_us_per_row']:.1f} us | buffer read + psycopg |",
               f"| PostgreSQL backend CPU per row | {pg['server_backend_cpu_us_per_row']:.1f} us | /proc of the backend |"]
     for t, v in pg["tables"].items():
