@@ -318,7 +318,7 @@ def state_docs(drives: int, seconds: int):
 
     base = []
     for i in range(drives):
-        label, profile_name, state = STATUS_KINDS[i % len(STATUS_KINDS)]
+        _, profile_name, state = STATUS_KINDS[i % len(STATUS_KINDS)]
         st = realistic_status(f"d{i:04d}", profile_name, state, seed=i)
         doc = st.to_json()
         doc.update(state_code=STATE_CODES[st.state], quality_code=QUALITY_CODES[st.quality], schema=SCHEMA_VERSION,
@@ -326,7 +326,7 @@ def state_docs(drives: int, seconds: int):
         base.append((f"pmsm/hall-{i // 1000}/gw{i // 100:03d}/d{i:04d}/state", doc))
     t0 = time.time() - 86400 * 30
     for s in range(seconds):
-        for j, (key, doc) in enumerate(base):
+        for key, doc in base:
             yield key, json.dumps({**doc, "t": t0 + s * STATE_PERIOD_S, "seq": s + 1}).encode()
 
 
@@ -636,16 +636,19 @@ def table(fig: dict) -> str:
     return "\n".join(lines)
 
 
-def _finite(x) -> bool:
-    return isinstance(x, (int, float)) and math.isfinite(x)
-
-
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--smoke", action="store_true", help="tiny sizes (the test's form, about 20 s)")
     ap.add_argument("--out", type=Path, default=RESULTS, help="where the JSON goes")
     args = ap.parse_args(argv)
-    fig = run("smoke" if args.smoke else "full")
+    on_main = threading.current_thread() is threading.main_thread()
+    if on_main:  # SIGTERM runs the clean-ups (router, PostgreSQL) before exiting
+        before = signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+    try:
+        fig = run("smoke" if args.smoke else "full")
+    finally:
+        if on_main:
+            signal.signal(signal.SIGTERM, before)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(fig, indent=1, default=str) + "\n")
     print(table(fig))
