@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 PYTEST_ARGS ?=
 
-.PHONY: setup setup-test demo test test-full bench bench-alarms bench-workbench bench-detection docs clean gateway historian
+.PHONY: setup setup-test demo test test-full bench bench-plant bench-alarms bench-workbench bench-detection docs clean gateway historian
 
 setup: $(VENV)/.stamp-run
 
@@ -49,6 +49,11 @@ test-full: setup-test
 
 bench: setup-test
 	$(BIN)/python -m bench.run
+
+# the agent at plant scale: zenoh payload sizes, a router's throughput on loopback, the historian's
+# ingest and its PostgreSQL store (a few minutes; figures in bench/results/plant.json, docs/scale.md)
+bench-plant: setup-test
+	$(BIN)/python -m bench.bench_plant
 
 # false alarms per drive-day over 24 h of simulated operation per transmission, and detection
 # delays (about an hour on two cores; figures in docs/benchmarks.md)
