@@ -397,23 +397,6 @@ def test_signed_commands_from_an_authorised_role_only(plant):
     assert any("relearn requested over zenoh by test (engineer)" == e["detail"].get("event") for e in events)
 
 
-@pytest.fixture(scope="module")
-def pg():
-    from test_historian import PgServer, _pg_bindir
-
-    bindir = _pg_bindir()
-    if bindir is None:
-        pytest.skip("PostgreSQL's initdb is not installed (Debian: apt-get install postgresql)")
-    server = PgServer(bindir)
-    server.start()
-    yield server
-    try:
-        server.stop()
-    except AssertionError:
-        pass
-    shutil.rmtree(server.base, ignore_errors=True)
-
-
 def test_the_historian_records_every_drive_with_site_and_gateway(plant, pg, tmp_path):
     import psycopg
     from test_historian import started, write_config

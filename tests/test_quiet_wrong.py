@@ -119,7 +119,7 @@ CASES = [
     (["simulate", "--profile", P, "--effect", "inverter_deadtime=abc", "--out", "{dir}/x.npz"],
      "--effect 'inverter_deadtime=abc': the value after '=' must be a number"),
     (["simulate", "--profile", P, "--effect", "voltage_delay=100", "--out", "{dir}/x.npz"],
-     "effect 'voltage_delay': delay must be within 0..64 samples"),
+     "effect 'voltage_delay': delay must be within -4..64 samples"),
     (["simulate", "--profile", P, "--out", "{dir}/x.txt"], "unknown record format '.txt'"),
     (["simulate", "--profile", "{bad_toml}", "--out", "{dir}/x.npz"], "bad.toml"),
     (["simulate", "--profile", "{unknown_toml}", "--out", "{dir}/x.npz"], "unknown key 'extra'"),
@@ -239,6 +239,15 @@ CASES = [
     (["learn", "--config", "{agent_toml}", "--drive", "drive1", "{rec}"], "about 22 more minutes"),
     (["learn", "--config", "{agent_toml}", "--drive", "drive1", "{rate10k_npz}"], "sample rate 10000 Hz disagrees"),
     (["demo", "--seconds", "0"], "--seconds: 0 is outside > 0"),
+    # the plant: routers, fleet, historian, history
+    (["router", "--listen", "nonsense"], "zenoh config key 'listen/endpoints' = ['nonsense']"),
+    (["fleet", "status"], "the following arguments are required: --connect"),
+    (["fleet", "status", "--connect", "nonsense"], "zenoh config key 'connect/endpoints' = ['nonsense']"),
+    (["fleet", "command", "--connect", "tcp/127.0.0.1:1"], "the following arguments are required: action, --drive"),
+    (["historian", "--config", "{dir}/nope.toml"], "nope.toml: no such historian config file"),
+    (["history", "--drive", "d1", "--since", "24h"], "one of the arguments --config --dsn is required"),
+    (["history", "--drive", "d1", "--since", "yesterday", "--dsn", "postgresql://x"],
+     "--since 'yesterday': give an age like 30s"),
     (["nosuchcommand"], "invalid choice: 'nosuchcommand'"),
 ]
 

@@ -304,7 +304,7 @@ def add_commands(sub, common) -> None:
     s.set_defaults(func=cmd_fleet_status)
 
     s = fleet.add_parser("command", parents=[common], help="send a signed ACK or RELEARN to one drive")
-    s.add_argument("action", choices=("acknowledge", "relearn"))
+    s.add_argument("action", choices=("acknowledge", "relearn"), help="acknowledge the alarm, or relearn the baseline")
     connection(s)
     s.add_argument("--drive", required=True, metavar="KEY", help="the drive's key prefix, e.g. pmsm/site-a/gw1/d1")
     s.add_argument("--role", required=True, help="the role to sign as (a key in --key-file)")
