@@ -16,6 +16,7 @@ stop cleanly (journal flushed), SIGHUP reloads the model library.
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import queue
 import signal
@@ -439,8 +440,19 @@ class Service:
         signal.signal(signal.SIGHUP, lambda *_: (sdnotify.reloading("reloading the model library"), self._reload.set()))
 
 
+def bound_heap() -> None:
+    """At most two glibc malloc arenas: by default every reader thread that allocates a block
+    while another does gets an arena of its own (up to 8 per core), and the freed blocks of each
+    stay resident; measured about 3 MB per drive (docs/benchmarks.md). Not glibc: nothing to do."""
+    try:
+        ctypes.CDLL("libc.so.6").mallopt(-8, 2)  # M_ARENA_MAX
+    except (OSError, AttributeError):
+        pass
+
+
 def run_service(cfg: Config, max_seconds: float | None = None, on_transition=None) -> int:
     """``pmsm-agent run``: the service until SIGTERM (or ``max_seconds``)."""
+    bound_heap()
     service = Service(cfg, on_transition)
     if threading.current_thread() is threading.main_thread():
         service.install_signal_handlers()

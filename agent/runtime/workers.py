@@ -25,7 +25,7 @@ from dataclasses import dataclass, field, replace
 from multiprocessing.connection import Connection, wait
 
 from agent.runtime.config import Config
-from agent.runtime.service import Service
+from agent.runtime.service import Service, bound_heap
 
 log = logging.getLogger("pmsm-agent.workers")
 
@@ -61,7 +61,7 @@ class _PipeJournal:
     def __init__(self, send):
         self._send = send
 
-    def record(self, kind: str, drive: str | None = None, detail: dict | None = None) -> None:
+    def record(self, kind: str, drive: str = "", detail: dict | None = None) -> None:
         if kind not in ("start", "stop"):
             self._send(("journal", kind, drive, detail))
 
@@ -144,6 +144,7 @@ def _worker_main(cfg: Config, conn: Connection) -> None:
     """A worker process: its group's service until the supervisor stops it or goes away."""
     for key in ("NOTIFY_SOCKET", "WATCHDOG_USEC", "WATCHDOG_PID"):  # systemd talks to the supervisor only
         os.environ.pop(key, None)
+    bound_heap()
     logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # a terminal's Ctrl-C: the supervisor stops the workers
     signal.signal(signal.SIGHUP, signal.SIG_IGN)
@@ -212,7 +213,7 @@ class WorkerPool:
         for w in self.workers:
             if w.restart_at is not None and now >= w.restart_at:
                 self._start(w)
-                self.deliver(("journal", "worker", None, {"event": "restarted", "worker": w.index,
+                self.deliver(("journal", "worker", "", {"event": "restarted", "worker": w.index,
                                                           "drives": list(w.drives), "restarts": w.restarts}))
             elif w.conn is not None and now - w.last_beat > STALL_S:
                 self._lost(w, f"no beat for {now - w.last_beat:.0f} s")
@@ -253,7 +254,7 @@ class WorkerPool:
         w.restarts = 0 if uptime > 10 * longest else w.restarts + 1  # a long healthy run forgets old failures
         w.restart_at = time.monotonic() + min(longest, first * 2 ** max(0, w.restarts - 1))
         log.error("DSP worker %d (%s) lost: %s; restarting", w.index, ", ".join(w.drives), why)
-        self.deliver(("journal", "error", None, {"event": "worker", "worker": w.index, "drives": list(w.drives),
+        self.deliver(("journal", "error", "", {"event": "worker", "worker": w.index, "drives": list(w.drives),
                                                  "error": why}))
 
     def healthy(self) -> bool:
