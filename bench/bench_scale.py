@@ -4,16 +4,17 @@ and the systemd notify socket:
 
     python -m bench.bench_scale [--drives 1,10,50,100] [--seconds 40] [--realtime-s 40]
 
-* chain: one drive's signal chain in this process, today's pipeline (the ``--reference`` git
-  revision) and this one on the same blocks, alternating, in one run: signal seconds per CPU second;
+* chain: one drive's signal chain in this process, the pipeline of the revision before the
+  plant-scale work (``REFERENCE``) and this one on the same blocks, alternating, in one run:
+  signal seconds per CPU second;
 * lossless: N drives replaying ``seconds`` of signal each as fast as the agent takes them: signal
-  seconds per CPU second per drive (all the agent's processes), peak resident memory (the sum
+  seconds (all drives) per CPU second (all the agent's processes), peak resident memory (the sum
   of the processes' high-water marks);
 * real time: N drives at speedup 1, healthy then a gear fault at ``onset_s``: percent of a core
   per drive, resident memory (sum over the processes at the end), dropped blocks (zenoh
   diagnostics), latency from the fault's onset in the signal to the drive's PLC register and to
-  its zenoh state message (p50, p99). The onset's wall time is READY + onset_s: sources open
-  before READY, so the latency is low by at most the time from a source's open to READY.
+  its zenoh state message (p50, p99): the onset is the drive's source's open time (its
+  diagnostics' ``opened_at``) + ``onset_s``, the replay being paced from its open.
 """
 
 from __future__ import annotations
@@ -145,7 +146,7 @@ class Agent:
         self.config, self.ports, self.drives, self.cwd = config, ports, drives, cwd
         self.ready_t: float | None = None
         self.watchdog_pings = 0
-        self.register_changes: dict[int, list[tuple[float, int]]] = {}  # drive -> [(t, state)]
+        self.register_changes: dict[int, list[tuple[float, int]]] = {}  # drive -> [(wall time, state)]
         self.zenoh_states: dict[str, list[tuple[float, dict]]] = {}
         self.diagnostics: dict[str, dict] = {}
         self._stop = threading.Event()
@@ -200,7 +201,7 @@ class Agent:
             return
 
         def on_sample(sample):
-            key, now = str(sample.key_expr), time.monotonic()
+            key, now = str(sample.key_expr), time.time()
             drive, topic = key.split("/")[-2:]
             doc = json.loads(sample.payload.to_string())
             if topic == "state":
@@ -225,7 +226,7 @@ class Agent:
                 if not client.connected and not client.connect():
                     time.sleep(0.2)
                     continue
-                t = time.monotonic()
+                t = time.time()
                 last = 16 + 16 * self.drives
                 values = []
                 for start in range(16, last, 112):  # whole drive blocks, at most 125 registers a read
@@ -240,7 +241,7 @@ class Agent:
                         seen = self.register_changes.setdefault(i, [])
                         if not seen or seen[-1][1] != values[16 * i]:
                             seen.append((t, values[16 * i]))
-                time.sleep(max(0.0, period_s - (time.monotonic() - t)))
+                time.sleep(max(0.0, period_s - (time.time() - t)))
             client.close()
         self._threads.append(threading.Thread(target=run, daemon=True))
         self._threads[-1].start()
@@ -315,11 +316,14 @@ def realtime(tmp: Path, data: dict, drives: int, onset_s: float, seconds: float,
         c1, t1 = cpu_s(pids), time.monotonic()
         rss, hwm = rss_mb(pids), rss_mb(pids, "VmHWM")
         time.sleep(2.5)  # a last diagnostics message
-        onset = agent.ready_t + onset_s
-        plc = [next((t for t, v in agent.register_changes.get(i, []) if v != 0 and t > onset - 1), None) - onset
-               for i in range(drives) if any(v != 0 and t > onset - 1 for t, v in agent.register_changes.get(i, []))]
-        zen = [next(t for t, doc in agent.zenoh_states.get(f"d{i}", []) if doc["state"] != "normal") - onset
-               for i in range(drives) if any(doc["state"] != "normal" for _, doc in agent.zenoh_states.get(f"d{i}", []))]
+        plc, zen = [], []
+        for i in range(drives):
+            opened = agent.diagnostics.get(f"d{i}", {}).get("source", {}).get("opened_at")
+            if not opened:
+                continue
+            onset = opened + onset_s
+            plc += [t - onset for t, v in agent.register_changes.get(i, []) if v != 0][:1]
+            zen += [t - onset for t, doc in agent.zenoh_states.get(f"d{i}", []) if doc["state"] != "normal"][:1]
         dropped = sum(int(d.get("dropped_blocks", 0)) for d in agent.diagnostics.values())
         pings = agent.watchdog_pings
     from agent.runtime.config import check_config, memory_estimate

@@ -119,7 +119,7 @@ def test_a_killed_worker_comes_back_and_the_other_drives_keep_flowing(tmp_path):
             time.sleep(0.2)
         workers = _worker_pids(agent.proc.pid)
         assert len(workers) == 2
-        killed_at = time.monotonic()
+        killed_at = time.time()  # the zenoh samples' arrival times are wall times
         subprocess.run(["kill", "-KILL", str(workers[0])], check=True)
         time.sleep(20.0)
         pings_after = agent.watchdog_pings
@@ -129,7 +129,7 @@ def test_a_killed_worker_comes_back_and_the_other_drives_keep_flowing(tmp_path):
             times = [t for t in _status_times(agent, d) if t > killed_at - 2.0]
             longest[d] = round(max((b - a for a, b in zip(times, times[1:])), default=99.0), 2)
             (lost if longest[d] > 3.0 else kept).append(d)
-            assert times and times[-1] > time.monotonic() - 3.0, f"{d} did not come back"
+            assert times and times[-1] > time.time() - 3.0, f"{d} did not come back"
         assert len(lost) == 3 and len(kept) == 3, longest
         assert lost in (["d0", "d2", "d4"], ["d1", "d3", "d5"])  # one worker's drives, dealt round-robin
         assert len(_worker_pids(agent.proc.pid)) == 2 and pings_after > 0

@@ -217,12 +217,12 @@ class JournalCfg:
 #: scale"): the agent's process without drives (zenoh, Modbus server, journal), a DSP worker
 #: without drives, and what a drive takes beyond its signal ring and its block queue (source
 #: buffers, pipeline state, Python objects).
-AGENT_PROCESS_MB = 110.0
-WORKER_PROCESS_MB = 75.0
-DRIVE_OVERHEAD_MB = 2.0
+AGENT_PROCESS_MB = 70.0
+WORKER_PROCESS_MB = 50.0
+DRIVE_OVERHEAD_MB = 1.5
 #: The largest estimate `run --check-config` accepts: config/pmsm-agent.service's MemoryHigh
-#: (its MemoryMax is this plus a quarter, the room for a fast replay's peaks and the allocator).
-MEMORY_LIMIT_MB = 1280.0
+#: (its MemoryMax is this plus a quarter, the room for the allocator and a leak's first hour).
+MEMORY_LIMIT_MB = 1152.0
 
 
 def memory_estimate(cfg) -> dict:

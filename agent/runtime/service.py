@@ -262,6 +262,7 @@ class Service:
         while not self.stop_event.is_set():
             try:
                 d.source.open()
+                d.source.stats.opened_at = time.time()
                 d.first_open.set()
                 break
             except Exception as err:  # a transport that is not there yet: retry with backoff
