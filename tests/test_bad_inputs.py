@@ -38,9 +38,11 @@ def files(tmp_path_factory):
     shipped = (PROFILE_PATH.parents[1] / "agent.toml").read_text().replace("profiles/", f"{PROFILE_PATH.parent}/")
     for name, old, new in (("window.toml", "window_s = 2.0", "window_s = 1e12"),
                            ("hop.toml", "hop_s = 1.0", "hop_s = -1"),
-                           ("stretches.toml", "learn_stretches = 40", "learn_stretches = 0"),
-                           ("buffers.toml", "window_s = 2.0", "window_s = 40.0")):
+                           ("stretches.toml", "learn_stretches = 40", "learn_stretches = 0")):
         (d / name).write_text(shipped.replace(old, new))
+    drive = shipped[shipped.index("[[drives]]"):shipped.index("[pipeline]")]  # more drives than memory allows
+    (d / "buffers.toml").write_text(shipped.replace("[pipeline]", "".join(
+        drive.replace('name = "drive1"', f'name = "drive{j}"') for j in range(2, 200)) + "[pipeline]"))
     return {"dir": str(d), "rec": rec, "model": model, **{k.replace(".", "_"): str(d / k) for k in (
         "zeros.npz", "empty.csv", "header.csv", "missing.csv", "text.csv", "notzip.npz", "bad.json",
         "bad.toml", "unknown.toml", "dir.npz", "window.toml", "hop.toml", "stretches.toml", "buffers.toml")}}
