@@ -105,8 +105,8 @@ def _status_times(agent, drive: str) -> list[float]:
 
 
 def test_a_killed_worker_comes_back_and_the_other_drives_keep_flowing(tmp_path):
-    """Six drives in two DSP workers at real time; one worker is SIGKILLed: its three drives
-    report again after the restart, the other three never miss a status (hop 1 s)."""
+    """Six drives in two DSP workers at real time; one worker is SIGKILLed: its three drives are
+    stale, then report again after the restart; the other three never miss a status (hop 1 s)."""
     data = bench_scale.prepare(tmp_path, 80.0, 1.0, 1)  # 81 s of healthy operation, one stream
     cfg = tmp_path / "agent.toml"
     ports = bench_scale.write_config(cfg, data["state"], [data["fault"]], 6, 1.0, workers=2)
@@ -132,6 +132,9 @@ def test_a_killed_worker_comes_back_and_the_other_drives_keep_flowing(tmp_path):
             assert times and times[-1] > time.time() - 3.0, f"{d} did not come back"
         assert len(lost) == 3 and len(kept) == 3, longest
         assert lost in (["d0", "d2", "d4"], ["d1", "d3", "d5"])  # one worker's drives, dealt round-robin
+        stale = {d for d in drives for t, doc in agent.zenoh_states.get(d, []) if t > killed_at and doc["quality"] == "stale"}
+        assert stale == set(lost)  # stale while their worker restarts, good again after
+        assert all(agent.zenoh_states[d][-1][1]["quality"] == "good" for d in drives)
         assert len(_worker_pids(agent.proc.pid)) == 2 and pings_after > 0
     assert agent.proc.returncode == 0, "".join(agent._stderr[-20:])
 

@@ -201,6 +201,11 @@ class Service:
                 self.library.reload()  # the worker wrote it: queries see it too
         elif kind == "transition":
             self.on_transition(*message[1:])
+        elif kind == "lost":  # the worker is restarting: its drives' last statuses are stale
+            for name in message[1]:
+                old = self.last.get(name, DriveStatus(name))
+                self._publish(replace(old, quality="stale", t=time.time(),
+                                      extra={**old.extra, "reason": f"DSP worker lost ({message[2]}), restarting"}))
 
     # -- events and queries ---------------------------------------------------------------------
     def _event(self, drive: str, kind: str, detail: dict) -> None:

@@ -170,7 +170,8 @@ class _Worker:
 
 class WorkerPool:
     """The supervisor's workers: started, read, restarted, stopped. ``deliver(message)`` takes
-    each worker's ``status`` / ``journal`` / ``transition`` message in the supervisor's loop."""
+    each worker's ``status`` / ``journal`` / ``transition`` message in the supervisor's loop, and
+    ``("lost", drives, why)`` when a worker is lost (its drives are stale until it is back)."""
 
     def __init__(self, cfg: Config, deliver, workers: int):
         self.cfg, self.deliver = cfg, deliver
@@ -256,6 +257,7 @@ class WorkerPool:
         log.error("DSP worker %d (%s) lost: %s; restarting", w.index, ", ".join(w.drives), why)
         self.deliver(("journal", "error", "", {"event": "worker", "worker": w.index, "drives": list(w.drives),
                                                  "error": why}))
+        self.deliver(("lost", w.drives, why))
 
     def healthy(self) -> bool:
         """Every worker beats (or is being restarted): the supervisor may ping the watchdog."""
