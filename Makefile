@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 PYTEST_ARGS ?=
 
-.PHONY: setup setup-test demo test test-full bench bench-plant bench-alarms bench-workbench bench-detection docs clean gateway historian
+.PHONY: setup setup-test demo test test-full bench bench-plant bench-scale bench-alarms bench-workbench bench-detection docs clean gateway historian
 
 setup: $(VENV)/.stamp-run
 
@@ -54,6 +54,12 @@ bench: setup-test
 # ingest and its PostgreSQL store (a few minutes; figures in bench/results/plant.json, docs/scale.md)
 bench-plant: setup-test
 	$(BIN)/python -m bench.bench_plant
+
+# the agent at plant scale: 1, 10, 50 and 100 replayed drives in the real agent and its DSP workers,
+# lossless and at real time, and one drive's chain against the revision before it (about 15 min;
+# figures in docs/benchmarks.md; `make test` runs a short form)
+bench-scale: setup-test
+	$(BIN)/python -m bench.bench_scale
 
 # false alarms per drive-day over 24 h of simulated operation per transmission, and detection
 # delays (about an hour on two cores; figures in docs/benchmarks.md)

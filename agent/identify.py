@@ -51,11 +51,17 @@ def operating_point(sig: Signals, profile: DriveProfile) -> dict[str, float]:
     the input power over the rated power. ``input_power_pct`` is that input power (eq. 10's P_in)
     in any case. One definition from the profile alone, so that a baseline and the running agent
     read the same figure."""
-    p_in = 100.0 * float(np.mean(sig.power)) / profile.motor.rated_power_w
+    return operating_point_of_means(float(np.mean(sig.power)), float(np.mean(sig.i_dq[1])),
+                                    float(np.mean(sig.omega_e)), profile)
+
+
+def operating_point_of_means(power_w: float, i_q_a: float, omega_e: float, profile: DriveProfile) -> dict[str, float]:
+    """:func:`operating_point` from the record's mean input power (W), q current (A) and speed (rad/s)."""
+    p_in = 100.0 * power_w / profile.motor.rated_power_w
     m = profile.motor
     psi = (profile.nameplate.psi_m(m.pole_pairs) if profile.nameplate else None) or m.psi_m_from_rating
-    load = p_in if psi is None else 100.0 * 1.5 * m.pole_pairs * psi * float(np.mean(sig.i_dq[1])) / m.rated_torque_nm
-    return {"fe_hz": float(np.mean(sig.omega_e) / (2 * np.pi)), "load_pct": load, "input_power_pct": p_in}
+    load = p_in if psi is None else 100.0 * 1.5 * m.pole_pairs * psi * i_q_a / m.rated_torque_nm
+    return {"fe_hz": omega_e / (2 * np.pi), "load_pct": load, "input_power_pct": p_in}
 
 
 @dataclass
@@ -122,12 +128,17 @@ def fit_record(sig: Signals, profile: DriveProfile, form: str = "lumped",
 
 
 def fit_torque(sig: Signals, profile: DriveProfile) -> np.ndarray:
-    """[K_GT (N m/rad), B_GT (N m s/rad)] of the torque regression (eq. 15): RLS without forgetting
-    over the record in information form (R = P0^-1 + X^T X, r = X^T y), from the two columns' dot
-    products directly since there are only two."""
+    """[K_GT (N m/rad), B_GT (N m s/rad)] of the torque regression (eq. 15) over the record."""
     (theta_m, omega_m), t_shaft = torque_regression(sig, profile.motor.pole_pairs, profile.torque_per_watt)
-    info = np.array([[theta_m @ theta_m, theta_m @ omega_m], [theta_m @ omega_m, omega_m @ omega_m]]) + 1e-6 * np.eye(2)
-    return np.linalg.solve(info, np.array([theta_m @ t_shaft, omega_m @ t_shaft]))
+    return solve_torque(theta_m @ theta_m, theta_m @ omega_m, omega_m @ omega_m, theta_m @ t_shaft, omega_m @ t_shaft)
+
+
+def solve_torque(tt: float, tw: float, ww: float, ty: float, wy: float) -> np.ndarray:
+    """[K_GT, B_GT] from the torque regression's dot products (t: theta_m, w: omega_m, y: T_shaft):
+    RLS without forgetting in information form (R = P0^-1 + X^T X, r = X^T y), P0 = 1e6, from the
+    two columns' dot products directly since there are only two."""
+    info = np.array([[tt, tw], [tw, ww]]) + 1e-6 * np.eye(2)
+    return np.linalg.solve(info, np.array([ty, wy]))
 
 
 def cluster_point(sig: Signals, profile: DriveProfile, form: str = "lumped", extra_q: tuple[Term, ...] = (),

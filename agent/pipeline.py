@@ -37,16 +37,16 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from agent.baseline import SEARCH_BINS, BaselineBuilder, residual_spectra
 from agent.decision import STATES, decide
 from agent.evidence import FULL_EVIDENCE_STRETCHES, AlarmConfig, AlarmLogic, feature_values, learning_shift
-from agent.frames import CLARKE, abc_to_dq
-from agent.identify import cluster_point, fit_torque, operating_point
-from agent.sanity import not_running
+from agent.frames import CLARKE, cos_sin32, park
+from agent.identify import cluster_point, operating_point_of_means, solve_torque
+from agent.sanity import not_running_of
 from agent.library import ModelLibrary
 from agent.model import BASE_TERMS, Signals, input_power, regressors
 from agent.pll import PLL
@@ -61,9 +61,48 @@ _THETA_LIMIT = 2.0**20  #: rad; the buffered angle is kept below this
 #: starting while learning): with 40 stretches P(|t_38| > 6) = 5e-7 per split and feature
 LEARNING_SHIFT_T = 6.0
 LEARNING_SHIFT_MIN = 20  #: stretches from which the check is made (fewer: too little to tell)
-#: rows of the window buffer: phase voltages and currents, angle (wrapped), speed, dq signals, power
-_ROWS = ("va", "vb", "vc", "ia", "ib", "ic", "theta_e", "omega_e", "i_d", "i_q", "v_d", "v_q", "p_in",
-         "cos_theta", "sin_theta")
+#: rows of the signal ring: phase voltages and currents, speed, dq signals, power; stored as
+#: float32 (24-bit mantissa, above any ADC's resolution). The angle has a float64 ring of its own:
+#: unwrapped up to _THETA_LIMIT, float32 would resolve it to 0.06 rad.
+_ROWS = ("va", "vb", "vc", "ia", "ib", "ic", "omega_e", "i_d", "i_q", "v_d", "v_q", "p_in")
+RING_DTYPE = np.float32
+
+
+def ring_bytes(rate_hz: float, span_s: float) -> int:
+    """Bytes of one drive's signal ring: a span of the float32 rows and the float64 angle."""
+    return int(round(span_s * rate_hz)) * (len(_ROWS) * np.dtype(RING_DTYPE).itemsize + 8)
+
+
+@dataclass(frozen=True)
+class HopSums:
+    """Sums over one hop of the ring, from which a span's operating point, running check and torque
+    regression follow without the span's samples (each sample summed once, on its hop). The angle
+    enters as its deviation from the hop's mean ``theta_mean`` (rad), so the sums stay exact where
+    the angle is large."""
+
+    n: int
+    power: float  #: sum of P_in, W
+    omega: float  #: sum of omega_e, rad/s
+    i_q: float
+    i_sq: float  #: sum of i_d^2 + i_q^2, A^2
+    i_min: tuple[float, float]  #: (i_d, i_q) minima and maxima, A (NaN when a sample is not finite)
+    i_max: tuple[float, float]
+    theta_mean: float
+    theta_sq: float  #: sum of (theta - theta_mean)^2
+    theta_omega: float
+    theta_power: float
+    omega_sq: float
+    omega_power: float
+
+
+def hop_sums(sig: Signals) -> HopSums:
+    """The :class:`HopSums` of one hop's signals."""
+    i, w, p = sig.i_dq, sig.omega_e, sig.power
+    mean = float(np.mean(sig.theta_e))
+    dth = sig.theta_e - mean
+    return HopSums(sig.n, float(p.sum()), float(w.sum()), float(i[1].sum()), float(np.einsum("ij,ij->", i, i)),
+                   tuple(i.min(axis=1).tolist()), tuple(i.max(axis=1).tolist()), mean, float(dth @ dth),
+                   float(dth @ w), float(dth @ p), float(w @ w), float(w @ p))
 
 
 @dataclass(frozen=True)
@@ -80,6 +119,7 @@ class PipelineConfig:
     max_current_a: float = float("inf")  #: |i| at or above this is saturation -> bad input
     max_voltage_v: float = float("inf")
     alarm: AlarmConfig = AlarmConfig()  #: the alarm logic (agent.evidence)
+    ring_dtype: str = np.dtype(RING_DTYPE).name  #: storage of the signal ring (float64: the reference in tests)
 
     @property
     def learn_total_s(self) -> float:
@@ -118,9 +158,10 @@ class DriveMonitor:
         self.n_span = self.n_win * config.span_windows
         self.on_event = on_event or (lambda kind, detail: None)
         self._judge: str | None = None  #: the baseline that judged last (an event when it changes)
-        # circular buffer, one row per signal (_ROWS); each sample is transformed once, on arrival,
-        # and stored twice (at i and i + n_span) so that any recent stretch is a contiguous view
-        self._buf = np.zeros((len(_ROWS), 2 * self.n_span))
+        # circular buffer of one span, one row per signal (_ROWS) and the angle: each sample is
+        # transformed once, on arrival; a stretch is read out as float64 (:meth:`_signals`)
+        self._ring = np.zeros((len(_ROWS), self.n_span), dtype=config.ring_dtype)
+        self._theta = np.zeros(self.n_span)
         self.pll = PLL(self.rate, profile.rated_fe_hz)
         self.status = DriveStatus(drive)
         self._below_since: float | None = None
@@ -148,6 +189,7 @@ class DriveMonitor:
         self._bad_until = 0  # stream sample until which spans contain NaN or saturated samples
         self._spectra: dict[tuple[str, int], np.ndarray] = {}  # (model, window end sample) -> spectrum
         self._q_info: dict[int, tuple] = {}  # hop end sample -> (model, q-axis X^T X, X^T y)
+        self._hop_sums: dict[int, HopSums] = {}  # hop end sample -> its sums (the span's hops)
         self.pll.reset()
         self.last_input = time.monotonic()
         self.alarms.new_stream()
@@ -168,48 +210,49 @@ class DriveMonitor:
         else:
             if self._samples == 0:  # a new stream: the PLL starts where it starts, as offline (record_signals)
                 self.pll.reset(block.i_abc)
-            theta, omega = self.pll.process(np.nan_to_num(block.i_abc))
+            theta, omega = self.pll.process(block.i_abc if np.isfinite(block.i_abc).all() else np.nan_to_num(block.i_abc))
         # continuous angle across blocks (Signals wants it unwrapped); kept below 2^20 rad by
         # shifting the whole buffer by whole turns, which changes no cosine and no difference
-        theta = np.unwrap(np.concatenate(([self._theta_last], theta)))[1:]
+        step = np.diff(theta, prepend=self._theta_last)  # np.unwrap's result, a tenth of its overhead
+        theta = theta + np.cumsum(np.where(np.abs(step) < np.pi, 0.0, -2 * np.pi * np.rint(step / (2 * np.pi))))
         if theta[-1] > _THETA_LIMIT:
             turns = 2 * np.pi * np.floor(theta[0] / (2 * np.pi))
             theta = theta - turns
-            self._buf[6] -= turns
+            self._theta -= turns
+            self._hop_sums = {k: replace(h, theta_mean=h.theta_mean - turns) for k, h in self._hop_sums.items()}
         self._theta_last = theta[-1]
         i_max, v_max = np.abs(block.i_abc).max(), np.abs(block.v_abc).max()  # NaN propagates
         if not (i_max < self.config.max_current_a and v_max < self.config.max_voltage_v):
             self._bad_until = self._samples + block.n + self.n_span  # spans containing this block are bad
-        cos_sin = np.vstack((np.cos(theta), np.sin(theta)))
-        a, b = CLARKE[:2] @ block.i_abc
-        i_dq = np.vstack((a * cos_sin[0] + b * cos_sin[1], b * cos_sin[0] - a * cos_sin[1]))  # eq. 2, as frames
-        v_dq, _ = abc_to_dq(block.v_abc, theta + 0.5 * omega / self.rate)  # ZOH voltage, see Signals
-        data = np.vstack((block.v_abc, block.i_abc, theta[None, :], omega[None, :], i_dq, v_dq,
-                          input_power(block.v_abc, block.i_abc)[None, :], cos_sin))
+        data = np.empty((len(_ROWS), block.n), dtype=self._ring.dtype)
+        data[0:3], data[3:6], data[6] = block.v_abc, block.i_abc, omega
+        data[7:9] = park(CLARKE[:2] @ block.i_abc, *cos_sin32(theta))  # eq. 2
+        data[9:11] = park(CLARKE[:2] @ block.v_abc, *cos_sin32(theta + 0.5 * omega / self.rate))  # ZOH voltage, see Signals
+        data[11] = input_power(block.v_abc, block.i_abc)
         out, pos = [], 0
         while pos < block.n:
             take = min(block.n - pos, self.n_hop - self._since_hop)
-            self._push(data[:, pos:pos + take])
+            self._push(data[:, pos:pos + take], theta[pos:pos + take])
             pos += take
             self._since_hop += take
             if self._since_hop == self.n_hop:
                 self._since_hop = 0
+                self._hop_sums[self._samples] = hop_sums(self._signals(self.n_hop, checked=False))
+                for old in [k for k in self._hop_sums if k <= self._samples - self.n_span]:
+                    del self._hop_sums[old]
                 status = self._hop()
                 if status is not None:
                     out.append(status)
         return out
 
-    def _push(self, chunk: np.ndarray) -> None:
+    def _push(self, chunk: np.ndarray, theta: np.ndarray) -> None:
         n = chunk.shape[1]  # <= n_hop <= n_span
-        end = self._write + n
-        for base in (0, self.n_span):
-            if end <= self.n_span:
-                self._buf[:, base + self._write:base + end] = chunk
-            else:
-                split = self.n_span - self._write
-                self._buf[:, base + self._write:base + self.n_span] = chunk[:, :split]
-                self._buf[:, base:base + n - split] = chunk[:, split:]
-        self._write = end % self.n_span
+        first = min(n, self.n_span - self._write)
+        self._ring[:, self._write:self._write + first] = chunk[:, :first]
+        self._theta[self._write:self._write + first] = theta[:first]
+        self._ring[:, :n - first] = chunk[:, first:]
+        self._theta[:n - first] = theta[first:]
+        self._write = (self._write + n) % self.n_span
         self._filled = min(self.n_span, self._filled + n)
         self._samples += n
         self._clock += n
@@ -222,14 +265,57 @@ class DriveMonitor:
         return None
 
     # -- decisions ------------------------------------------------------------------------------
-    def _signals(self, n: int) -> Signals | None:
-        """The last ``n`` samples, oldest first; None if they hold NaN or saturated samples."""
-        if self._samples < self._bad_until - self.n_span + n:
+    def _clean(self, n: int) -> bool:
+        """True when the last ``n`` samples hold no NaN nor saturated sample."""
+        return self._samples >= self._bad_until - self.n_span + n
+
+    def _signals(self, n: int, back: int = 0, checked: bool = True, phases: bool = True) -> Signals | None:
+        """``n`` samples ending ``back`` samples before the newest, oldest first, as float64
+        copies; None (when ``checked``) if the last ``n + back`` hold NaN or saturated samples.
+        Without ``phases`` only the dq signals, speed and angle (what a model without effects needs)."""
+        if checked and not self._clean(n + back):
             return None
-        end = self._write + self.n_span
-        b = self._buf[:, end - n:end]
-        return Signals(b[8:10], b[10:12], b[6], b[7], 1.0 / self.rate, b[3:6], b[0:3],
-                       self.profile.motor.pole_pairs, b[12], b[13:15])
+        start = (self._write - back - n) % self.n_span
+        first = min(n, self.n_span - start)
+        lo, hi = (0, len(_ROWS)) if phases else (_ROWS.index("omega_e"), _ROWS.index("v_q") + 1)
+        rows, theta, ring = np.empty((hi - lo, n)), np.empty(n), self._ring[lo:hi]
+        rows[:, :first], theta[:first] = ring[:, start:start + first], self._theta[start:start + first]
+        rows[:, first:], theta[first:] = ring[:, :n - first], self._theta[:n - first]
+        r = lambda name: rows[_ROWS.index(name) - lo]  # noqa: E731
+        dq = rows[_ROWS.index("i_d") - lo:_ROWS.index("v_q") - lo + 1]
+        if not phases:
+            return Signals(dq[:2], dq[2:], theta, r("omega_e"), 1.0 / self.rate, pole_pairs=self.profile.motor.pole_pairs)
+        return Signals(dq[:2], dq[2:], theta, r("omega_e"), 1.0 / self.rate, rows[3:6], rows[0:3],
+                       self.profile.motor.pole_pairs, r("p_in"))
+
+    def _span_sums(self) -> HopSums:
+        """The sums of the span's hops combined (the angle about the span's mean)."""
+        hops = [self._hop_sums[e] for e in range(self._samples - self.n_span + self.n_hop, self._samples + 1, self.n_hop)]
+        n = sum(h.n for h in hops)
+        mean = sum(h.n * h.theta_mean for h in hops) / n
+        total = lambda f: sum(getattr(h, f) for h in hops)  # noqa: E731
+        shift = [h.theta_mean - mean for h in hops]
+        return HopSums(n, total("power"), total("omega"), total("i_q"), total("i_sq"),
+                       tuple(np.min([h.i_min for h in hops], axis=0).tolist()),
+                       tuple(np.max([h.i_max for h in hops], axis=0).tolist()), mean,
+                       sum(h.theta_sq + h.n * d * d for h, d in zip(hops, shift)),
+                       sum(h.theta_omega + d * h.omega for h, d in zip(hops, shift)),
+                       sum(h.theta_power + d * h.power for h, d in zip(hops, shift)),
+                       total("omega_sq"), total("omega_power"))
+
+    def _operating_point(self, sums: HopSums) -> dict:
+        return operating_point_of_means(sums.power / sums.n, sums.i_q / sums.n, sums.omega / sums.n, self.profile)
+
+    def _not_running(self, sums: HopSums) -> str | None:
+        lo, hi = np.array(sums.i_min), np.array(sums.i_max)
+        constant = not np.all(np.isfinite(hi - lo)) or bool(np.all(hi == lo))
+        return not_running_of(constant, sums.omega / sums.n, float(np.sqrt(sums.i_sq / sums.n)), self.profile)
+
+    def _torque(self, sums: HopSums) -> np.ndarray:
+        """[K_GT, B_GT] of the span (:func:`agent.identify.fit_torque` from the sums)."""
+        p, k = self.profile.motor.pole_pairs, self.profile.torque_per_watt
+        return solve_torque(sums.theta_sq / p**2, sums.theta_omega / p**2, sums.omega_sq / p**2,
+                            k * sums.theta_power / p, k * sums.omega_power / p)
 
     def _window_spectrum(self, name: str, end: int) -> np.ndarray | None:
         """Residual spectrum of the window ending at stream sample ``end`` (cached)."""
@@ -238,11 +324,11 @@ class DriveMonitor:
             back = self._samples - end
             if back + self.n_win > self._filled:
                 return None
-            sig = self._signals(self.n_win + back)
-            if sig is None:
-                return None
             base = self.library.baselines[name]
-            part = sig.slice(0, self.n_win)
+            part = self._signals(self.n_win, back, phases=bool(base.model.extra_d or base.model.extra_q))
+            if part is None:
+                return None
+            part = replace(part, cos_sin=cos_sin32(part.theta_e))
             self._spectra[key] = residual_spectra(base.model, part, base.thresholds.window_s,
                                                   base.thresholds.freqs_hz[-1])[1][0]
             for old in [k for k in self._spectra if k[1] <= self._samples - self.n_span]:
@@ -253,27 +339,28 @@ class DriveMonitor:
         """One assessment: samples -> signals -> operating point -> baseline -> residual -> evidence -> decision."""
         if self._filled < self.n_span:
             return None
-        sig = self._signals(self.n_span)
+        clean = self._clean(self.n_span)
         if self._builder is not None:
             self._learn_hops += 1
-            if sig is None:
+            if not clean:
                 self._learn_bad += 1
                 if self._learn_bad > max(10, 0.2 * self._learn_hops):
                     return self._refuse(f"{self._learn_bad} of {self._learn_hops} spans had NaN or saturated "
                                         "samples: the data is not good enough to learn from",
                                         {"fe_hz": self.status.fe_hz, "load_pct": self.status.load_pct})
-        if sig is None:
+        if not clean:
             return self._set(quality="bad_input", reason="NaN or saturated samples in the span")
-        op = operating_point(sig, self.profile)
-        self.alarms.observe((op["fe_hz"], op["load_pct"]), self.config.hop_s, self._span_ends(sig),
+        sums = self._span_sums()
+        op = self._operating_point(sums)
+        self.alarms.observe((op["fe_hz"], op["load_pct"]), self.config.hop_s, self._span_ends(),
                             acquiring=self._samples <= self.n_span and not self._encoder)
-        idle = not_running(sig, self.profile)
+        idle = self._not_running(sums)
         if idle is not None:
             return self._set(quality="no_model", model="", state="normal", spectrum_state="normal",
                              cluster_state="normal", fe_hz=op["fe_hz"], load_pct=op["load_pct"], peaks=[],
                              reason=idle)
         if self._builder is not None:
-            return self._learn(sig, op)
+            return self._learn(self._signals(self.n_span), op)
         name = self.library.select(op["fe_hz"], op["load_pct"], self.status.model or None)
         if name is None:
             return self._set(quality="no_model", model="", state="normal", spectrum_state="normal",
@@ -288,7 +375,7 @@ class DriveMonitor:
         spectra = [self._window_spectrum(name, e) for e in ends]
         if any(s is None for s in spectra):
             return self._set(quality="bad_input", reason="NaN or saturated samples in a window")
-        point = np.array([self._ts_over_lq(name), fit_torque(sig, self.profile)[1]])
+        point = np.array([self._ts_over_lq(name), self._torque(sums)[1]])
         freqs = base.thresholds.freqs_hz
         y = feature_values(freqs, np.array(spectra), self.profile, op["fe_hz"], base.evidence.features, SEARCH_BINS)
         v = self.alarms.step(base.evidence, self.profile, y[-1], point, op["input_power_pct"], op["fe_hz"],
@@ -299,12 +386,12 @@ class DriveMonitor:
                          peaks=d.peaks, cluster_distance2=d.cluster["distance2"], reason=v.reason,
                          evidence=v.evidence, settling=v.settling)
 
-    def _span_ends(self, sig: Signals):
+    def _span_ends(self):
         """On a stream's first hop, the readings of the span's first and last hop and the hops per
         span (:meth:`AlarmLogic.observe`); None after that."""
         if not self.alarms.fresh:
             return None
-        ends = [operating_point(sig.slice(a, a + self.n_hop), self.profile) for a in (0, self.n_span - self.n_hop)]
+        ends = [self._operating_point(self._hop_sums[e]) for e in (self._samples - self.n_span + self.n_hop, self._samples)]
         return (ends[0]["fe_hz"], ends[0]["load_pct"]), (ends[1]["fe_hz"], ends[1]["load_pct"]), self.n_span // self.n_hop
 
     def last_spectrum(self) -> tuple[str, np.ndarray, np.ndarray] | None:
@@ -330,7 +417,7 @@ class DriveMonitor:
             if self._q_info.get(end, (None,))[0] != name:
                 back = self._samples - end
                 n = self.n_hop + int(back + self.n_hop + 1 <= self._filled)  # the sample before, if still held
-                part = self._signals(n + back).slice(0, n)
+                part = self._signals(n, back, phases=bool(m.extra_q))
                 x = regressors(terms, part)[:-1]
                 self._q_info[end] = (name, x.T @ x, x.T @ part.i_dq[1, 1:])
         for old in [k for k in self._q_info if k not in ends]:

@@ -50,6 +50,7 @@ class SourceStats:
     gaps: int = 0  #: sequence jumps (lost frames)
     reconnects: int = 0
     last_error: str = ""
+    opened_at: float = 0.0  #: wall time (time.time()) the source last opened, s
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)

@@ -8,6 +8,8 @@ from pathlib import Path
 
 import pytest
 
+from agent.runtime.config import MEMORY_LIMIT_MB
+
 UNIT = Path(__file__).resolve().parent.parent / "config" / "pmsm-agent.service"
 
 
@@ -32,7 +34,9 @@ def test_unit_keys():
                        "ProtectSystem": "strict", "NoNewPrivileges": "yes", "SupplementaryGroups": "dialout",
                        "RestrictAddressFamilies": "AF_UNIX AF_INET AF_INET6 AF_CAN AF_NETLINK"}.items():
         assert svc[key] == value, key
-    assert svc["MemoryMax"] == "640M" and svc["MemoryHigh"] == "448M" and svc["CPUQuota"] == "100%"
+    # the rule in the unit's comments: MemoryHigh is the largest estimate check-config accepts, MemoryMax 25 % more
+    assert svc["MemoryHigh"] == f"{MEMORY_LIMIT_MB:.0f}M" and svc["MemoryMax"] == f"{1.25 * MEMORY_LIMIT_MB:.0f}M"
+    assert svc["CPUQuota"] == "170%"
     assert "OPENBLAS_NUM_THREADS=1" in " ".join(v for k, v in s["Service"] if k == "Environment")
     assert ("DeviceAllow", "char-ttyUSB rw") in s["Service"] and ("DeviceAllow", "char-ttyACM rw") in s["Service"]
     assert {"StartLimitIntervalSec", "StartLimitBurst"} <= {k for k, _ in s["Unit"]}

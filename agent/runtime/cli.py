@@ -114,16 +114,19 @@ def cmd_run(args) -> None:
     if args.check_config:
         cfg = check_config(args.check_config)
         names = ", ".join(f"{d.name} ({d.source.kind})" for d in cfg.drives)
-        from agent.runtime.config import buffer_mb
+        from agent.runtime.config import MEMORY_LIMIT_MB, memory_estimate
 
-        mb = buffer_mb(cfg)
+        mem = memory_estimate(cfg)
         if args.json:
             json.dump({"config": str(cfg.source), "ok": True, "drives": [d.name for d in cfg.drives],
-                       "state_dir": str(cfg.state_dir), "buffer_mb": round(mb, 1)}, sys.stdout)
+                       "state_dir": str(cfg.state_dir), "memory_mb": round(mem["total_mb"], 1),
+                       "memory_per_drive_mb": round(mem["per_drive_mb"], 2), "memory_limit_mb": MEMORY_LIMIT_MB,
+                       "workers": mem["workers"]}, sys.stdout)
             sys.stdout.write("\n")
         else:
             print(f"{args.check_config}: OK: {len(cfg.drives)} drive(s): {names}; state_dir {cfg.state_dir}; "
-                  f"signal buffers about {mb:.0f} MB")
+                  f"memory about {mem['total_mb']:.0f} MB ({mem['per_drive_mb']:.1f} MB per drive, "
+                  f"{mem['workers']} DSP process(es); limit {MEMORY_LIMIT_MB:g} MB)")
         return
     cfg = check_config(args.config)
     try:

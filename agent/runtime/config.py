@@ -240,22 +240,36 @@ class JournalCfg:
     error_holdoff_s: float = _opt(60.0, ge=0)  #: repeats of the same error within this are only counted
 
 
-MAX_BUFFER_MB = 400.0  #: signal buffers beyond this do not fit the unit's MemoryHigh (config/pmsm-agent.service)
+#: Resident memory, measured with bench.bench_scale (docs/benchmarks.md, "The agent at plant
+#: scale"): the agent's process without drives (zenoh, Modbus server, journal), a DSP worker
+#: without drives, and what a drive takes beyond its signal ring and its block queue (source
+#: buffers, pipeline state, Python objects).
+AGENT_PROCESS_MB = 70.0
+WORKER_PROCESS_MB = 50.0
+DRIVE_OVERHEAD_MB = 1.5
+#: The largest estimate `run --check-config` accepts: config/pmsm-agent.service's MemoryHigh
+#: (its MemoryMax is this plus a quarter, the room for the allocator and a leak's first hour).
+MEMORY_LIMIT_MB = 1152.0
 
 
-def buffer_mb(cfg) -> float:
-    """Memory of the drives' signal buffers, MB: each drive keeps its span (window x span windows)
-    of 15 float64 rows twice (a ring whose any stretch is contiguous) plus its block queue."""
-    from agent.pipeline import _ROWS, PipelineConfig
+def memory_estimate(cfg) -> dict:
+    """The agent's resident memory for ``cfg``, MB: its process, the DSP workers
+    (agent.runtime.workers) and per drive the signal ring (agent.pipeline.ring_bytes), a full
+    block queue (float32) and the measured overhead. Returns total_mb, per_drive_mb (the largest)
+    and workers."""
+    from agent.pipeline import PipelineConfig, ring_bytes
     from agent.runtime.service import QUEUE_BLOCKS
+    from agent.runtime.workers import worker_count
 
-    total = 0.0
+    drives = []
     for d in cfg.drives:
         rate = d.drive_profile.sampling.rate_hz
-        span = cfg.pipeline.window_s * PipelineConfig().span_windows * rate
         block = getattr(d.source, "block_s", 0.1) * rate
-        total += (2 * len(_ROWS) * span + QUEUE_BLOCKS * 6 * block) * 8
-    return total / 1e6
+        ring = ring_bytes(rate, cfg.pipeline.window_s * PipelineConfig().span_windows)
+        drives.append((ring + QUEUE_BLOCKS * 6 * block * 4) / 1e6 + DRIVE_OVERHEAD_MB)
+    workers = worker_count(cfg)
+    total = AGENT_PROCESS_MB + (workers * WORKER_PROCESS_MB if workers > 1 else 0.0) + sum(drives)
+    return {"total_mb": total, "per_drive_mb": max(drives, default=0.0), "workers": workers}
 
 
 def _default_agent_id() -> str:
@@ -282,6 +296,9 @@ class Config:
     commands: CommandsCfg = CommandsCfg()
     library: LibraryCfg = LibraryCfg()
     journal: JournalCfg = JournalCfg()
+    #: DSP processes (agent.runtime.workers): 0 = one per core for more than a few drives,
+    #: 1 = the agent's own process; a worker that fails is restarted without the others
+    workers: int = _opt(0, ge=0, le=64)
     source: Path | None = field(default=None, metadata={"derived": True})  #: the config file
 
     def drive(self, name: str) -> DriveCfg:
@@ -407,10 +424,10 @@ def _validate(cfg: Config) -> Config:
         raise _KeyError("pipeline.hop_s", f"must be <= pipeline.window_s ({p.window_s}), got {p.hop_s}")
     _validate_zenoh(cfg.zenoh)
     _validate_commands(cfg.commands)
-    mb = buffer_mb(replace(cfg, drives=tuple(drives)))
-    if mb > MAX_BUFFER_MB:
-        raise _KeyError("pipeline.window_s", f"the signal buffers of {len(drives)} drive(s) would take {mb:.0f} MB "
-                        f"(at most {MAX_BUFFER_MB:g} MB): shorten the window or split the drives")
+    mb = memory_estimate(replace(cfg, drives=tuple(drives)))["total_mb"]
+    if mb > MEMORY_LIMIT_MB:
+        raise _KeyError("drives", f"{len(drives)} drive(s) would take about {mb:.0f} MB of memory (at most "
+                        f"{MEMORY_LIMIT_MB:g} MB, the unit's MemoryHigh): shorten pipeline.window_s or split the drives")
     state_dir = cfg.state_dir or _default_state_dir(cfg.source)
     if state_dir.exists() and not state_dir.is_dir():
         raise _KeyError("state_dir", f"{state_dir} exists and is not a directory")

@@ -34,7 +34,7 @@ from protocols.base import QUALITY_CODES, STATE_CODES
 log = logging.getLogger(__name__)
 
 #: event kinds (free-form kinds are accepted too; these are the ones the runtime writes)
-KINDS = ("state", "quality", "learning", "baseline", "model", "error", "start", "stop", "reload")
+KINDS = ("state", "quality", "learning", "baseline", "model", "error", "start", "stop", "reload", "worker")
 FILENAME = "journal.sqlite3"
 SCHEMA_VERSION = 1
 

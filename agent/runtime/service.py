@@ -16,6 +16,7 @@ stop cleanly (journal flushed), SIGHUP reloads the model library.
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import queue
 import signal
@@ -25,6 +26,8 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+
+import numpy as np
 
 from agent.errors import InputError
 from agent.evidence import AlarmConfig
@@ -63,8 +66,14 @@ def transition_line(drive: str, kind: str, detail: dict) -> str:
         parts.append(f'reason="{reason}"')
     return " ".join(parts)
 
-QUEUE_BLOCKS = 64  #: per drive, ~6 s of 0.1 s blocks
+QUEUE_BLOCKS = 32  #: per drive, ~3 s of 0.1 s blocks, held as float32 (:func:`compact`)
 OPEN_WAIT_S = 10.0  #: READY waits at most this long for each source's first open
+WORKER_START_S = 30.0  #: ... plus this long for DSP workers to start (imports, library)
+
+
+def compact(block: Block) -> Block:
+    """The block as it waits in a queue: samples as float32 (as the signal ring stores them)."""
+    return replace(block, v_abc=block.v_abc.astype(np.float32), i_abc=block.i_abc.astype(np.float32))
 
 
 def build_source(drive, rate_hz: float, span_s: float | None = None) -> Source:
@@ -134,7 +143,6 @@ class DriveRuntime:
     gaps: int = 0
     first_open: threading.Event = field(default_factory=threading.Event)
     auto_learned: bool = False
-    windows_seen: int = 0  #: status.window at the last STATUS line
     reader: threading.Thread | None = None
 
 
@@ -148,14 +156,23 @@ class Service:
         self._reload = threading.Event()
         state_dir = Path(cfg.state_dir)
         state_dir.mkdir(parents=True, exist_ok=True)
-        self.journal = Journal.from_config(cfg)
+        self.journal = self._open_journal(cfg)
         p = cfg.pipeline
         self.library = ModelLibrary(cfg.library.path or state_dir / "library",
                                     Schedule(p.schedule_fe_tol_hz, p.schedule_load_tol_pct, p.schedule_hysteresis))
         pcfg = pipeline_config(cfg)
-        self.drives = {}
+        self.names = [d.name for d in cfg.drives]
+        self.last: dict[str, DriveStatus] = {}  #: each drive's newest status
+        self._windows_seen: dict[str, int] = {}  #: status.window at the last STATUS line
+        self.drives = {}  #: the drives this process runs (none when DSP workers run them)
+        self.pool = None
         span_s = pcfg.window_s * pcfg.span_windows
-        for d in cfg.drives:
+        from agent.runtime.workers import WorkerPool, worker_count
+
+        workers = worker_count(cfg)
+        if workers > 1:
+            self.pool = WorkerPool(cfg, self._worker_message, workers)
+        for d in cfg.drives if self.pool is None else ():
             # a snapshot source (Modbus) delivers one span every capture (span_s) + transfer: quiet
             # that long between snapshots is normal, so "stale" waits for two missed snapshots
             dcfg = replace(pcfg, stale_after_s=pcfg.stale_after_s + 2 * span_s) if d.source.kind == "modbus" else pcfg
@@ -168,7 +185,7 @@ class Service:
         if cfg.modbus_server.enabled:
             from protocols.modbus_plc import PlcModbusServer
 
-            self.plc = PlcModbusServer(list(self.drives), host=cfg.modbus_server.host, port=cfg.modbus_server.port)
+            self.plc = PlcModbusServer(self.names, host=cfg.modbus_server.host, port=cfg.modbus_server.port)
             self.sinks.append(self.plc)
         self.gate = None  #: checks signed zenoh commands (agent.runtime.commands)
         self.remote_commands: deque = deque()  #: accepted zenoh commands, applied by the DSP thread
@@ -186,7 +203,28 @@ class Service:
                                   events=self.journal.provider(), diagnostics=self._diagnostics,
                                   health=self._health, link=self._zenoh_link,
                                   command=self._zenoh_command if self.gate is not None else None)
-            self.sinks.append(sink_from_config(cfg.zenoh, cfg.agent_id, list(self.drives), providers))
+            self.sinks.append(sink_from_config(cfg.zenoh, cfg.agent_id, self.names, providers))
+
+    def _open_journal(self, cfg: Config):
+        return Journal.from_config(cfg)
+
+    def _worker_message(self, message) -> None:
+        """A DSP worker's status, journal record or transition (agent.runtime.workers)."""
+        kind = message[0]
+        if kind == "status":
+            self._publish(message[1])
+        elif kind == "journal":
+            _, what, drive, detail = message
+            self.journal.record(what, drive, detail=detail)
+            if what == "learning" and (detail or {}).get("event") == "learned":
+                self.library.reload()  # the worker wrote it: queries see it too
+        elif kind == "transition":
+            self.on_transition(*message[1:])
+        elif kind == "lost":  # the worker is restarting: its drives' last statuses are stale
+            for name in message[1]:
+                old = self.last.get(name, DriveStatus(name))
+                self._publish(replace(old, quality="stale", t=time.time(),
+                                      extra={**old.extra, "reason": f"DSP worker lost ({message[2]}), restarting"}))
 
     # -- events and queries ---------------------------------------------------------------------
     def _event(self, drive: str, kind: str, detail: dict) -> None:
@@ -203,7 +241,7 @@ class Service:
             self.on_transition(drive, kind, detail)
 
     def _baseline(self, drive: str):
-        name = self.drives[drive].monitor.status.model
+        name = self.last[drive].model if drive in self.last else ""
         if not name:
             raise KeyError(f"{drive}: no model scheduled")
         return name, self.library.baselines[name]
@@ -223,6 +261,8 @@ class Service:
                 "th3": th.th3.tolist(), "window_s": th.window_s}
 
     def _q_spectrum(self, drive: str, params: dict) -> dict:
+        if self.pool is not None:
+            return self.pool.query(drive, "spectrum", params)
         mon = self.drives[drive].monitor
         spectrum = mon.last_spectrum()
         if spectrum is None:
@@ -269,6 +309,11 @@ class Service:
         return {"accepted": True, "command": cmd.kind, "drive": drive, "role": cmd.role}
 
     def _diagnostics(self, drive: str) -> dict:
+        if self.pool is not None:
+            diag = self.pool.diagnostics(drive)
+            diag.pop("opened", None)
+            diag.pop("learn_progress_pct", None)
+            return {**diag, "library": sorted(self.library.baselines)}
         d = self.drives[drive]
         return {"source": d.source.stats.as_dict(), "queue": d.blocks.qsize(), "dropped_blocks": d.dropped, "stream_gaps": d.gaps,
                 "learning": d.monitor.learning, "library": sorted(self.library.baselines)}
@@ -279,6 +324,7 @@ class Service:
         while not self.stop_event.is_set():
             try:
                 d.source.open()
+                d.source.stats.opened_at = time.time()
                 d.first_open.set()
                 break
             except Exception as err:  # a transport that is not there yet: retry with backoff
@@ -296,6 +342,7 @@ class Service:
             block = d.source.read(timeout=0.2)
             if block is None:
                 continue
+            block = compact(block)
             if not lossless:  # a live link: a slow pipeline loses the oldest blocks, never the link
                 d.dropped += put_drop_oldest(d.blocks, block)
                 continue
@@ -307,6 +354,7 @@ class Service:
                     continue
 
     def _publish(self, status: DriveStatus) -> None:
+        self.last[status.drive] = status
         for sink in self.sinks:
             try:
                 sink.publish(status)
@@ -343,13 +391,15 @@ class Service:
         """What ``systemctl status`` shows: per drive its state, quality and learning progress,
         and the windows assessed per second over the last ``period_s``."""
         items = []
-        for d in self.drives.values():
-            st = d.monitor.status
-            text = f"{d.name} {st.state}/{st.quality}"
-            if d.monitor.learning:
-                text += f" learning {d.monitor.learn_progress_pct:.0f}%"
-            rate = (st.window - d.windows_seen) / max(period_s, 1e-3)
-            d.windows_seen = st.window
+        for name in self.names:
+            st = self.last.get(name, DriveStatus(name))
+            if self.pool is None:
+                learning = self.drives[name].monitor.learn_progress_pct if self.drives[name].monitor.learning else None
+            else:
+                learning = self.pool.diagnostics(name).get("learn_progress_pct") if self.pool.diagnostics(name).get("learning") else None
+            text = f"{name} {st.state}/{st.quality}" + (f" learning {learning:.0f}%" if learning is not None else "")
+            rate = max(0, st.window - self._windows_seen.get(name, 0)) / max(period_s, 1e-3)
+            self._windows_seen[name] = st.window
             items.append(f"{text} {rate:.1f} win/s")
         return "; ".join(items)
 
@@ -368,19 +418,27 @@ class Service:
         """Apply the PLC's commands and the accepted zenoh commands (ACK of a zenoh command goes
         to the PLC server, which keeps ALARM_ACKED, as the PLC's own ACK does)."""
         for cmd in self.plc.commands() if self.plc is not None else ():
-            if cmd.kind == "relearn" and cmd.drive in self.drives:
+            if cmd.kind == "relearn" and cmd.drive in self.names:
                 self._relearn(cmd.drive, "relearn requested by the PLC")
         while self.remote_commands:
             cmd = self.remote_commands.popleft()
-            if cmd.kind == "relearn":
+            if cmd.kind == "relearn" and cmd.drive in self.names:
                 self._relearn(cmd.drive, f"relearn requested over zenoh by {cmd.by or cmd.role} ({cmd.role})")
             elif cmd.kind == "acknowledge" and self.plc is not None:
                 self.plc.acknowledge(cmd.drive)
 
     def _relearn(self, drive: str, why: str) -> None:
-        """A new baseline for the point the drive runs at: it replaces the one covering it."""
-        self.drives[drive].monitor.start_learning(replace=True)
+        """Relearn ``drive`` (in its DSP worker where there are workers) and journal ``why``."""
+        if self.pool is not None:
+            self.pool.send(drive, ("relearn", drive))
+        else:
+            self.relearn(drive)
         self.journal.record("learning", drive, detail={"event": why})
+
+    def relearn(self, drive: str) -> None:
+        """Learn the drive's current operating point again: the new baseline replaces the one that
+        covers it (the PLC's or an authorised zenoh relearn command)."""
+        self.drives[drive].monitor.start_learning(replace=True)
 
     def run(self, max_seconds: float | None = None) -> int:
         """Open everything, run until stopped (or ``max_seconds``), close everything."""
@@ -403,10 +461,14 @@ class Service:
             for d in self.drives.values():
                 d.reader = threading.Thread(target=self._reader, args=(d,), name=f"source-{d.name}", daemon=True)
                 d.reader.start()
+            if self.pool is not None:
+                self.pool.start()
             watchdog = sdnotify.Watchdog()
             for d in self.drives.values():  # READY once every source has been opened (or tried)
                 d.first_open.wait(timeout=OPEN_WAIT_S)
-            down = [d.name for d in self.drives.values() if d.source.stats.last_error]
+            if self.pool is not None:
+                self.pool.wait_open(WORKER_START_S + OPEN_WAIT_S)
+            down = [name for name in self.names if self._diagnostics(name).get("source", {}).get("last_error")]
             sdnotify.ready(f"monitoring {len(self.drives)} drive(s)" + (f"; not connected: {', '.join(down)}" if down else ""))
             last_status = time.monotonic()
             next_status = last_status + 1.0  # the first live line soon after READY
@@ -416,20 +478,25 @@ class Service:
                 if self._reload.is_set():
                     self._reload.clear()
                     self.library.reload()
+                    if self.pool is not None:
+                        self.pool.send(None, ("reload",))
                     self.journal.record("reload", detail={"library": sorted(self.library.baselines)})
                     sdnotify.notify("READY=1", "STATUS=library reloaded")
-                busy = self._dsp_step()
+                busy = self._dsp_step() if self.pool is None else self.pool.pump(0.01)
                 if time.monotonic() >= next_status:
                     sdnotify.status(self.status_line(time.monotonic() - last_status))
                     last_status, next_status = time.monotonic(), time.monotonic() + STATUS_PERIOD_S
                 self._commands()
-                watchdog.ping()
-                if not busy:
+                if self.pool is None or self.pool.healthy():
+                    watchdog.ping()
+                if not busy and self.pool is None:
                     time.sleep(0.01)
             return 0
         finally:
             sdnotify.stopping("stopping")
             self.stop_event.set()
+            if self.pool is not None:
+                self.pool.stop()
             for d in self.drives.values():
                 if d.reader is not None:
                     d.reader.join(timeout=2.0)
@@ -448,8 +515,19 @@ class Service:
         signal.signal(signal.SIGHUP, lambda *_: (sdnotify.reloading("reloading the model library"), self._reload.set()))
 
 
+def bound_heap() -> None:
+    """At most two glibc malloc arenas: by default every reader thread that allocates a block
+    while another does gets an arena of its own (up to 8 per core), and the freed blocks of each
+    stay resident; measured about 3 MB per drive (docs/benchmarks.md). Not glibc: nothing to do."""
+    try:
+        ctypes.CDLL("libc.so.6").mallopt(-8, 2)  # M_ARENA_MAX
+    except (OSError, AttributeError):
+        pass
+
+
 def run_service(cfg: Config, max_seconds: float | None = None, on_transition=None) -> int:
     """``pmsm-agent run``: the service until SIGTERM (or ``max_seconds``)."""
+    bound_heap()
     service = Service(cfg, on_transition)
     if threading.current_thread() is threading.main_thread():
         service.install_signal_handlers()
