@@ -91,7 +91,6 @@ def files(tmp_path_factory):
     for name, old, new in (("window.toml", "window_s = 2.0", "window_s = 1e12"),
                            ("hop.toml", "hop_s = 1.0", "hop_s = -1"),
                            ("stretches.toml", "learn_stretches = 40", "learn_stretches = 0"),
-                           ("buffers.toml", "window_s = 2.0", "window_s = 40.0"),
                            ("cfgkey.toml", "hop_s = 1.0", "hop_s = 1.0\nhop = 2"),
                            ("kind.toml", 'kind = "simulated"', 'kind = "telepathy"'),
                            ("noprofile.toml", 'profile = "', 'profile = "missing/'),
@@ -99,6 +98,9 @@ def files(tmp_path_factory):
                            ("tol.toml", "schedule_load_tol_pct = 5.0", "schedule_load_tol_pct = -5.0")):
         assert old in shipped, old
         (d / name).write_text(shipped.replace(old, new))
+    drive = shipped[shipped.index("[[drives]]"):shipped.index("[pipeline]")]  # more drives than memory allows
+    (d / "buffers.toml").write_text(shipped.replace("[pipeline]", "".join(
+        drive.replace('name = "drive1"', f'name = "drive{j}"') for j in range(2, 200)) + "[pipeline]"))
     names = [p.name for p in d.iterdir()]
     return {"dir": str(d), "rec": rec, "model": model, **{k.replace(".", "_"): str(d / k) for k in names}}
 
@@ -224,7 +226,7 @@ CASES = [
     (["run", "--check-config", "{port_toml}"], "modbus_server.port"),
     (["run", "--check-config", "{tol_toml}"], "pipeline.schedule_load_tol_pct"),
     (["run", "--config", "{window_toml}"], "pipeline.window_s"),
-    (["run", "--check-config", "{buffers_toml}"], "MB"),
+    (["run", "--check-config", "{buffers_toml}"], "199 drive(s) would take about"),
     (["status", "--config", "{agent_toml}"], "no journal at"),
     (["learn", "--config", "{dir}/nope.toml", "--drive", "d1"], "nope.toml"),
     (["learn", "--config", "{agent_toml}", "--drive", "drive9", "{rec}"], "--drive 'drive9': no such drive"),
