@@ -181,8 +181,8 @@ def misses_by_attribute(rows: list[tuple[dict, dict]]) -> list[str]:
     at least 2 misses, as "attribute=value: misses/drives"."""
     if not rows:
         return []
-    numeric = [k for k in ATTRIBUTES if isinstance(rows[0][0].get(k), float) and k not in ("saliency",)] + ["saliency"]
-    medians = {k: float(np.median([d[k] for d, _ in rows])) for k in numeric if all(k in d for d, _ in rows)}
+    medians = {k: float(np.median([d[k] for d, _ in rows])) for k in ATTRIBUTES
+               if all(isinstance(d.get(k), float) for d, _ in rows)}  # numeric attributes split at their median
     rate = sum(m for _, m in rows) / len(rows)
     out = []
     for key in ATTRIBUTES:
