@@ -244,7 +244,7 @@ class JournalCfg:
 #: scale"): the agent's process without drives (zenoh, Modbus server, journal), a DSP worker
 #: without drives, and what a drive takes beyond its signal ring and its block queue (source
 #: buffers, pipeline state, Python objects).
-AGENT_PROCESS_MB = 70.0
+AGENT_PROCESS_MB = 80.0
 WORKER_PROCESS_MB = 50.0
 DRIVE_OVERHEAD_MB = 1.5
 #: The largest estimate `run --check-config` accepts: config/pmsm-agent.service's MemoryHigh
