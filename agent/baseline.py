@@ -169,7 +169,7 @@ class TrainingRecord:
     """One record as a baseline saw it while learning (for :mod:`agent.training`'s checks)."""
 
     source: str
-    operating_point: dict  #: fe_hz (Hz), load_pct (% of rated power)
+    operating_point: dict  #: fe_hz (Hz), load_pct (% of rated torque)
     #: dq signals, or a function that computes them again (to read the record with another baseline)
     signals: Signals | Callable[[], Signals] | None = field(default=None, repr=False)
     spectra: np.ndarray | None = field(default=None, repr=False)  #: residual amplitude spectra (windows, bins), A

@@ -44,8 +44,9 @@ def demo_config(state_dir: Path):
                                drives=(dataclasses.replace(drive, source=source),))
 
 
-def run_demo(seconds: float = WALL_LIMIT_S, say=print) -> list[dict]:
-    """Run the demo for at most ``min(seconds, 60)`` s; returns the transitions."""
+def run_demo(seconds: float = WALL_LIMIT_S, say=print, until_learned: bool = False) -> list[dict]:
+    """Run the demo for at most ``min(seconds, 60)`` s (``until_learned``: only until its baseline is
+    learned); returns the transitions."""
     from agent.runtime.service import Service
 
     transitions: list[dict] = []
@@ -71,6 +72,8 @@ def run_demo(seconds: float = WALL_LIMIT_S, say=print) -> list[dict]:
             op = detail.get("operating_point", {})
             say(f"[{t:6.2f} s] {drive}: baseline learned at fe {op.get('fe_hz', 0):.1f} Hz, "
                 f"load {op.get('load_pct', 0):.0f} % -> {detail.get('path')}")
+            if until_learned:
+                service.stop_event.set()
 
     import logging
 

@@ -41,7 +41,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from agent.baseline import SEARCH_BINS, BaselineBuilder, residual_spectra
+from agent.baseline import SEARCH_BINS, BaselineBuilder, TrainingRecord, residual_spectra
 from agent.decision import STATES, decide
 from agent.evidence import FULL_EVIDENCE_STRETCHES, AlarmConfig, AlarmLogic, feature_values, learning_shift
 from agent.frames import CLARKE, cos_sin32, park
@@ -50,6 +50,7 @@ from agent.sanity import not_running_of
 from agent.library import ModelLibrary
 from agent.model import BASE_TERMS, Signals, input_power, regressors
 from agent.pll import PLL
+from agent.training import ACCEPT_FLAG, fault_reading
 from agent.profile import DriveProfile
 from protocols.base import Block, DriveStatus
 
@@ -172,6 +173,7 @@ class DriveMonitor:
         self._builder: BaselineBuilder | None = None
         self._learn_name = ""
         self._learn_vet = None
+        self._reading: tuple[str, TrainingRecord] | None = None  #: the last assessed span (fault_reading)
         self.alarms = AlarmLogic(config.alarm)
         self.reset_stream()
 
@@ -381,6 +383,7 @@ class DriveMonitor:
         v = self.alarms.step(base.evidence, self.profile, y[-1], point, op["input_power_pct"], op["fe_hz"],
                              self.config.hop_s)
         d = decide(base, freqs, np.array(spectra), point, op, self.drive)  # the paper's rule: peaks for display
+        self._reading = (name, TrainingRecord(f"{self.drive} (live)", op, None, np.array(spectra), point))
         return self._set(quality="good", model=name, state=self._hold(v.state), spectrum_state=v.spectrum_state,
                          cluster_state=v.cluster_state, fe_hz=op["fe_hz"], load_pct=op["load_pct"],
                          peaks=d.peaks, cluster_distance2=d.cluster["distance2"], reason=v.reason,
@@ -486,6 +489,37 @@ class DriveMonitor:
         self._learn_op: dict | None = None  #: the operating point of the first span learned from
         self.on_event("learning", {"name": name, "phase": "parameters", "progress_pct": 0.0,
                                    "remaining_s": self.learn_remaining_s})
+
+    def fault_reading(self) -> str | None:
+        """What the last assessed span reads as a fault against the baseline that covers it: the
+        training guard's rule (:func:`agent.training.fault_reading`, a sideband pair above centre + 5
+        spread in both windows or a cluster point beyond the 99.99 % region), or a warning of the
+        alarm logic; None when neither."""
+        st = self.status
+        if st.quality != "good" or self._reading is None or self._reading[0] != st.model:
+            return None
+        name, reading = self._reading
+        found = fault_reading(self.library.baselines[name], reading)
+        if st.state == "warning":
+            found.append(f"the alarm logic's warning ({(st.extra.get('reason') or {}).get('path', 'slow')} path)")
+        return f"{self.drive} reads as faulty against {name}: {'; '.join(found)}" if found else None
+
+    def relearn(self, name: str | None = None, accept_fault_evidence: bool = False) -> str | None:
+        """Learn the present operating point again, replacing the baseline that covers it (the PLC's or
+        an authorised zenoh relearn command, ``pmsm-agent learn --replace`` live). Refused while the
+        drive reads as faulty against that baseline (:meth:`fault_reading`): learning then would make
+        the fault the new normal. Returns the refusal (also journalled as ``learning_refused``) or
+        None when learning started."""
+        reading = self.fault_reading()
+        if reading is not None and not accept_fault_evidence:
+            why = (f"relearn refused: {reading}; learning now would learn the fault as healthy. Inspect the "
+                   f"transmission; after a repair that changed what healthy looks like, relearn with "
+                   f"`pmsm-agent learn --drive {self.drive} --replace {ACCEPT_FLAG}` (journalled)")
+            self.on_event("learning_refused", {"name": name, "reason": why})
+            log.warning("%s: %s", self.drive, why)
+            return why
+        self.start_learning(name, replace=True)
+        return None
 
     @property
     def learning(self) -> bool:

@@ -104,8 +104,11 @@ REGISTERS: tuple[RegisterDef, ...] = (
                 description="Write 1: acknowledge the drive's current alarm (see ALARM_ACKED). "
                             "The agent sets it back to 0 when taken."),
     RegisterDef("RELEARN", "HR", 1, access="RW", block="drive",
-                description="Write 1: request a new healthy baseline for this drive. Stays 1 until the "
-                            "agent has taken the request, then 0."),
+                description="Write 1: relearn the drive's present operating point (the new baseline replaces "
+                            "the one that covers it; QUALITY reads 2 while learning). Stays 1 until the agent has "
+                            "taken the request, then 0. Refused while the drive reads as faulty (a fault would be "
+                            "learned as healthy): QUALITY stays 0, the journal has the reason; relearn after a "
+                            "repair with `pmsm-agent learn --replace`."),
 )
 check_layout(REGISTERS)
 BY_NAME = {d.name: d for d in REGISTERS}

@@ -93,6 +93,37 @@ def test_learn_from_the_live_source(tmp_path, capsys):
     assert (tmp_path / "state" / "library" / "live80.json").is_file()
 
 
+def test_a_live_relearn_of_a_drive_in_warning_is_refused_unless_accepted(tmp_path, capsys):
+    """``learn --replace`` from the live source first reads the drive with the baseline it replaces: a
+    drive whose gear is worn reads warning and is refused (the library unchanged); with
+    --accept-fault-evidence it learns and the journal says so. The healthy drive is the control."""
+    cfg = config(tmp_path)
+    base = cfg.read_text()
+
+    def live(condition: str) -> None:
+        cfg.write_text(base.replace('kind = "simulated"', 'kind = "simulated"\nspeedup = 1000.0\nload_pct = 80.0\n'
+                                    f'schedule = [{{ condition = "{condition}", seconds = 600.0 }}]'))
+
+    live("healthy")
+    rc, out, err = run(["learn", "--json", "--config", str(cfg), "--drive", "drive1", "--name", "live80",
+                        "--max-seconds", "120"], capsys)
+    assert rc == 0, err
+    learned = (tmp_path / "state" / "library" / "live80.json").read_bytes()
+    live("gear_severe_wear")
+    rc, out, err = run(["learn", "--config", str(cfg), "--drive", "drive1", "--replace", "--max-seconds", "120"], capsys)
+    assert rc == 2 and "reads as faulty against live80" in err and "gear_driven" in err, err
+    assert "--accept-fault-evidence" in err and (tmp_path / "state" / "library" / "live80.json").read_bytes() == learned
+    rc, out, err = run(["learn", "--json", "--config", str(cfg), "--drive", "drive1", "--replace",
+                        "--accept-fault-evidence", "--max-seconds", "120"], capsys)
+    assert rc == 0, err
+    doc = json.loads(out)
+    assert doc["replaced"] == "live80" and "reads as faulty against live80" in doc["accepted_fault_evidence"][0]
+    live("healthy")  # the control: a healthy drive relearns without the flag
+    rc, out, err = run(["learn", "--json", "--config", str(cfg), "--drive", "drive1", "--replace",
+                        "--max-seconds", "120"], capsys)
+    assert rc == 0 and json.loads(out)["accepted_fault_evidence"] == [], err
+
+
 def test_learn_from_a_live_source_that_is_not_there(tmp_path, capsys):
     cfg = config(tmp_path)
     cfg.write_text(cfg.read_text().replace('kind = "simulated"', f'kind = "serial"\nport = "{tmp_path}/no-tty"'))

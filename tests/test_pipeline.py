@@ -427,3 +427,24 @@ def test_a_switch_of_baseline_is_an_event_even_at_unchanged_quality(tmp_path):
     switches = [d for k, d in events if k == "baseline"]
     assert [(d["from"], d["to"]) for d in switches] == [(None, "b80"), ("b80", "b55")]
     assert [k for k, _ in events if k in ("state", "quality")] == ["quality"]  # no_model -> good, once: nothing else tells
+
+
+def test_relearn_is_refused_while_the_drive_reads_warning_and_starts_when_it_reads_normal(library):
+    """The PLC's or zenoh's relearn (``DriveMonitor.relearn``) on a drive in warning would learn the fault
+    as healthy: refused with the lines that warn, journalled, the baseline kept; on the healthy control
+    the same command starts learning."""
+    events = []
+    faulty = DriveMonitor("d1", profile(), library, CFG, on_event=lambda k, d: events.append((k, d)))
+    out = feed(faulty, [sim("gear_severe_wear", 80.0, 8.0, 101)])
+    assert out[-1][1].state == "warning" and out[-1][1].quality == "good", [st.state for _, st in out]
+    why = faulty.relearn()
+    assert why is not None and "reads as faulty against b80" in why and "gear_driven" in why, why
+    assert not faulty.learning and "b80" in library.baselines
+    assert ("learning_refused", {"name": None, "reason": why}) in events
+    assert "--accept-fault-evidence" in why
+    assert faulty.relearn(accept_fault_evidence=True) is None and faulty.learning  # the operator's explicit choice
+
+    healthy = DriveMonitor("d1", profile(), library, CFG)
+    out = feed(healthy, [sim("healthy", 80.0, 8.0, 100)])
+    assert out[-1][1].state != "warning"
+    assert healthy.relearn() is None and healthy.learning

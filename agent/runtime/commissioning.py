@@ -19,7 +19,11 @@ reason and the library is unchanged:
   files): their operating points spread beyond the tolerance, or a file reads as faulty against the
   baseline it replaces (before learning) or against the others (after learning, before the write).
   ``--accept-fault-evidence`` learns anyway and writes a ``learning`` event saying so into the
-  journal of the agent's ``state_dir``.
+  journal of the agent's ``state_dir``;
+* live with ``--replace``, a drive that reads as faulty against the baseline it replaces (the
+  training guard's rule on the first ``pipeline.persist_hops`` spans, before any learning): learning would make the fault the new
+  normal (:meth:`agent.pipeline.DriveMonitor.relearn`, as for the PLC's relearn);
+  ``--accept-fault-evidence`` learns anyway.
 """
 
 from __future__ import annotations
@@ -109,7 +113,11 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
     lengths: list[float] = []  #: s, the files learned from
     seen: list = []  #: every status of the learning (why it made no progress)
     monitor = DriveMonitor(drive.name, drive.drive_profile, library, pcfg, on_event=on_event)
-    monitor.start_learning(name, replace=replace, vet=vet)
+    #: a live relearn first reads the drive with the baseline it replaces (persist_hops decisions): one that
+    #: reads warning is refused (DriveMonitor.relearn), a fault is not learned as healthy
+    reads = 0 if replace and not files else None
+    if reads is None:
+        monitor.start_learning(name, replace=replace, vet=vet)
     if files:
         from agent.records import load_record
         from protocols.base import Block
@@ -138,11 +146,23 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
             raise InputError(f"drive {drive.name}: cannot open its {drive.source.kind} source: {err}",
                              source=str(cfg.source)) from err
         try:
-            while monitor.learning and (t_end is None or time.monotonic() < t_end):
+            while (monitor.learning or reads is not None) and (t_end is None or time.monotonic() < t_end):
                 blk = source.read(timeout=0.5)
-                if blk is not None:
-                    seen += monitor.process(blk)
-                elif getattr(source, "finished", False):
+                if blk is None:
+                    if getattr(source, "finished", False):
+                        break
+                    continue
+                for st in monitor.process(blk):
+                    seen.append(st)
+                    if reads is None or st.quality not in ("good", "no_model"):
+                        continue
+                    reads = reads + 1 if st.quality == "good" else pcfg.persist_hops  # no_model: nothing to replace
+                    if reads >= pcfg.persist_hops:
+                        reads, reading = None, monitor.fault_reading()
+                        if monitor.relearn(name, accept_fault_evidence) is not None:
+                            break
+                        findings += [f"live data ({reading})"] if reading else []
+                if reads is None and not monitor.learning:
                     break
         finally:
             source.close()

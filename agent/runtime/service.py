@@ -437,8 +437,9 @@ class Service:
 
     def relearn(self, drive: str) -> None:
         """Learn the drive's current operating point again: the new baseline replaces the one that
-        covers it (the PLC's or an authorised zenoh relearn command)."""
-        self.drives[drive].monitor.start_learning(replace=True)
+        covers it (the PLC's or an authorised zenoh relearn command); refused while the drive reads
+        warning (:meth:`agent.pipeline.DriveMonitor.relearn`)."""
+        self.drives[drive].monitor.relearn()
 
     def run(self, max_seconds: float | None = None) -> int:
         """Open everything, run until stopped (or ``max_seconds``), close everything."""
