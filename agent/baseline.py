@@ -193,6 +193,18 @@ class Baseline:
     training: list[TrainingRecord] = field(default_factory=list, repr=False)  #: what it was learned from
     #: (records given to identify_baseline; this run only, not saved in the model file)
 
+    @property
+    def unusable(self) -> str | None:
+        """Why this baseline cannot judge records, None when it can: thresholds and cluster kept from
+        a parent model by ``model add-effect`` were learned with another residual (they misread
+        healthy records), so it must be relearned before monitoring or diagnosis."""
+        parent = self.settings.get("thresholds_of_parent")
+        if parent:
+            return (f"its thresholds and cluster are {parent}'s, learned with that model's residual, not this one's "
+                    f"(model add-effect could not relearn them): relearn them with `pmsm-agent model add-effect` on "
+                    f"at least 4 healthy records at its operating point, or `pmsm-agent learn`")
+        return None
+
 
 class BaselineBuilder:
     """Algs. 2-4 in two passes over healthy data, so records or streamed windows never need to be

@@ -192,6 +192,8 @@ def assess(baseline: Baseline, sig: Signals, source: str = "") -> Diagnosis:
     spectra and cluster point, evidence, decision."""
     op = operating_point(sig, baseline.profile)
     idle = not_running(sig, baseline.profile)
+    if idle is None and baseline.unusable is not None:
+        idle = f"the model {baseline.unusable}"
     if idle is not None:
         return Diagnosis(source, "normal", "normal", "normal", [], {}, op, [], {}, "no_model", idle)
     m = baseline.model

@@ -369,10 +369,11 @@ class DriveMonitor:
                              cluster_state="normal", fe_hz=op["fe_hz"], load_pct=op["load_pct"], peaks=[],
                              reason="no baseline for this operating point")
         base = self.library.baselines[name]
-        if base.evidence is None:
+        unusable = "has no alarm statistics: learn it again" if base.evidence is None else base.unusable
+        if unusable is not None:
             return self._set(quality="no_model", model=name, state="normal", spectrum_state="normal",
                              cluster_state="normal", fe_hz=op["fe_hz"], load_pct=op["load_pct"], peaks=[],
-                             reason=f"baseline {name} has no alarm statistics: learn it again")
+                             reason=f"baseline {name} {unusable}")
         ends = [self._samples - j * self.n_win for j in range(self.config.span_windows - 1, -1, -1)]
         spectra = [self._window_spectrum(name, e) for e in ends]
         if any(s is None for s in spectra):

@@ -156,7 +156,8 @@ def fault_reading(baseline: Baseline, rec: TrainingRecord, sigma: float = GUARD_
 def _seen_by(replaced: Baseline | None, rec: TrainingRecord, schedule: Schedule) -> TrainingRecord | None:
     """``rec`` as the baseline it replaces sees it, when that baseline covers its operating point
     and can read it (same sample rate, at least one window)."""
-    if replaced is None or rec.signals is None or not at_operating_point(replaced, rec.operating_point, schedule):
+    if (replaced is None or replaced.unusable or rec.signals is None
+            or not at_operating_point(replaced, rec.operating_point, schedule)):
         return None
     sig = rec.signals() if callable(rec.signals) else rec.signals
     if abs(replaced.model.ts - sig.ts) > 1e-9 * sig.ts:  # a model of another sample rate cannot read it

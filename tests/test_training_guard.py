@@ -150,6 +150,15 @@ def test_add_effect_says_whether_it_relearned_the_thresholds(files, tmp_path, ca
     rc, out, err = run(capsys, "model", "add-effect", "--model", files["model"], "--effect", "current_offset",
                        "--out", tmp_path / "m3.json", *files[records])
     assert f"thresholds and cluster: {action} (" in out
+    # a version with the parent's thresholds judges nothing (they would misread healthy records), and says why
+    rc, out, err = run(capsys, "diagnose", "--json", "--model", tmp_path / "m2.json", *files["fresh"][:2])
+    assert rc == 0, err
+    diagnoses = json.loads(out)["results"]
+    if action == "kept":
+        assert all(d["quality"] == "no_model" and "thresholds and cluster are the parent model" in d["reason"]
+                   for d in diagnoses), diagnoses
+    else:
+        assert all(d["quality"] == "good" for d in diagnoses), diagnoses
 
 
 # --- learn: the agent's commissioning from files ---------------------------------------------------

@@ -188,10 +188,13 @@ def _relearn_thresholds(parent, model, recs, parent_path: str, accept_fault_evid
 
     def kept(reason):
         op = parent.operating_point
-        note = (f"they were learned with the parent's model, whose residual differs from this one's: relearn them "
-                f"on at least 4 healthy records at load {op['load_pct']:.1f} %, fe {op['fe_hz']:.2f} Hz before "
-                f"monitoring with this version")
-        return replace(parent, model=model, training=[]), {"action": "kept", "reason": reason, "note": note}, []
+        note = (f"they were learned with the parent's model, whose residual differs from this one's, so this "
+                f"version judges no record (diagnose and the agent say no_model) until they are relearned on at "
+                f"least 4 healthy records at load {op['load_pct']:.1f} %, fe {op['fe_hz']:.2f} Hz")
+        marked = {**parent.settings,
+                  "thresholds_of_parent": parent.settings.get("thresholds_of_parent") or f"the parent model {parent_path}"}
+        return (replace(parent, model=model, training=[], settings=marked),
+                {"action": "kept", "reason": reason, "note": note}, [])
 
     if len(recs) < 4 or short:
         return kept(f"relearning needs at least 4 healthy records of at least {window_s:g} s at the model's "
