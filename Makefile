@@ -3,6 +3,10 @@ PY     ?= $(shell command -v python3.11 || command -v python3)
 VENV   := .venv
 BIN    := $(VENV)/bin
 PYTEST_ARGS ?=
+# the suite runs in parallel, one test file per worker at a time (module fixtures are built once);
+# TEST_WORKERS=0 runs it in this process
+TEST_WORKERS ?= 2
+XDIST = $(if $(filter 0,$(TEST_WORKERS)),,-n $(TEST_WORKERS) --dist loadfile)
 
 .PHONY: setup setup-test demo test test-full bench bench-plant bench-scale bench-alarms bench-workbench bench-detection docs clean gateway historian
 
@@ -42,10 +46,10 @@ demo: setup
 	$(BIN)/pmsm-agent demo
 
 test: setup-test
-	$(BIN)/python -m pytest -q $(PYTEST_ARGS)
+	$(BIN)/python -m pytest -q $(XDIST) $(PYTEST_ARGS)
 
 test-full: setup-test
-	PMSM_SLOW=full $(BIN)/python -m pytest -q $(PYTEST_ARGS)
+	PMSM_SLOW=full $(BIN)/python -m pytest -q $(XDIST) $(PYTEST_ARGS)
 
 bench: setup-test
 	$(BIN)/python -m bench.run

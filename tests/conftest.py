@@ -1,7 +1,9 @@
 """Shared test settings. ``PMSM_SLOW=full`` selects the long form of tests marked ``slow``;
 ``make test`` runs them in their short form."""
 
+import fcntl
 import os
+import tempfile
 
 import pytest
 
@@ -23,3 +25,12 @@ def pg():
     server.start()
     yield server
     server.remove()
+
+
+@pytest.fixture
+def demo_ports():
+    """The demo's fixed ports (Modbus 5020, zenoh 7447: CONTRACT section 6) for one test at a time,
+    across the suite's parallel workers (pytest-xdist)."""
+    with open(os.path.join(tempfile.gettempdir(), "pmsm-agent-tests-demo-ports.lock"), "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        yield

@@ -179,7 +179,7 @@ def test_console_script_no_traceback(tmp_path):
     assert proc.returncode == 0 and "families" in json.loads(proc.stdout)
 
 
-def test_demo_ends_on_sigterm_and_leaves_no_temp_dir(tmp_path):
+def test_demo_ends_on_sigterm_and_leaves_no_temp_dir(tmp_path, demo_ports):
     """SIGTERM ends the demo at once (exit 0) and removes its state directory."""
     import os
     import signal

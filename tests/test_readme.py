@@ -104,7 +104,7 @@ def test_the_workbench_walkthrough_finds_the_offset_it_hides(fresh):
     assert (fresh / "runs" / "report" / "index.html").is_file() and (fresh / "runs" / "m2.json").is_file()
 
 
-def test_the_demo_prints_the_load_it_runs_at():
+def test_the_demo_prints_the_load_it_runs_at(demo_ports):
     """``pmsm-agent demo``: the baseline it learns is named and printed at the simulated drive's load
     (config/agent.toml, load as torque over rated torque), within 5 %-points."""
     from agent.demo import DEFAULT_CONFIG, run_demo
