@@ -17,7 +17,7 @@ voltage that carries the controller's reaction to i(k+1) explains i(k+1) as well
 input does (the controller's equation), so a regression over voltage lags reads the controller
 where the path's lag is. The free run of the whole record does not: it must follow the current
 over the machine's time constants. The path is pinned when the error at every candidate at least
-half a sample away is ``RISE`` times the best's; else none is given and the workbench uses the
+half a sample away is ``RISE`` times the best's and the best is inside the physical range; else none is given and the workbench uses the
 voltage as reported.
 """
 
@@ -34,6 +34,7 @@ D_RANGE = (-1.5, 2.0)  #: samples, the delay's physical range
 A_RANGE = (-1.0, 2.0)  #: samples of omega_e T_s, the advance's (a dq hold after one computation period: 1.5)
 STEP = 0.25  #: samples, the scan's grid (refined to half of it around the best)
 RISE = 1.5  #: the path is pinned when every candidate >= 0.5 sample away has this times the best's error
+FLOOR_SHARE = 0.3  #: share of the noise floor (rms) counted in a candidate's error
 SCAN_NFEV = 40  #: iteration budget of each candidate's refit
 NOT_PINNED = ("the records do not pin the voltage path (the base model's held-out error varies by less than "
               "{rise:g}x over the {what} candidates): the workbench uses the voltage as reported; a healthy record "
@@ -67,7 +68,8 @@ def path_of(meta: dict | None) -> tuple[float, float] | None:
 
 
 def _error(preps, d: float, a: float, fit) -> float:
-    """Held-out mean squared current error (raw, noise included, over the mean squared current) of
+    """Held-out mean squared current error beyond the noise floor plus ``FLOOR_SHARE`` of the floor
+    (a model within the noise is not better than one at a tenth of it), over the mean squared current, of
     the base model refitted (``fit(preps) -> Refit``) on ``preps`` with the path (d, a) applied."""
     from agent.workbench.fitting import heldout  # noqa: PLC0415
 
@@ -75,7 +77,7 @@ def _error(preps, d: float, a: float, fit) -> float:
     h = heldout(fit(moved).model, moved)
     if h["nrmse"] is None:
         return np.inf
-    return float(h["nrmse"]["total"] ** 2 + h["noise_floor"]["total"] ** 2)
+    return float(h["nrmse"]["total"] ** 2 + (FLOOR_SHARE * h["noise_floor"]["total"]) ** 2)
 
 
 def _scan(err, lo: float, hi: float) -> tuple[float, bool, dict]:
@@ -88,7 +90,8 @@ def _scan(err, lo: float, hi: float) -> tuple[float, bool, dict]:
             seen[x] = err(x)
     best = min(seen, key=seen.get)
     far = [e for x, e in seen.items() if abs(x - best) >= 0.5 - 1e-9]
-    pinned = bool(np.isfinite(seen[best]) and far and min(far) >= RISE * seen[best])
+    inside = lo < best < hi  # a best on the range's edge wants the path beyond physics: not this path
+    pinned = bool(inside and np.isfinite(seen[best]) and far and min(far) >= RISE * seen[best])
     left, right = best - STEP / 2, best + STEP / 2
     if left in seen and right in seen and all(np.isfinite([seen[left], seen[best], seen[right]])):
         curv = seen[left] - 2 * seen[best] + seen[right]
