@@ -97,7 +97,6 @@ def run_drive(args: tuple) -> dict:
     from agent.baseline import identify_baseline
     from agent.workbench.explain import explain
     from agent.workbench.fitting import prepare
-    from agent.workbench.voltage_path import path_of
     from bench.family import draw_drive, draw_effect, profile, revealable, simulate, truth
 
     t0 = time.perf_counter()
@@ -108,12 +107,11 @@ def run_drive(args: tuple) -> dict:
     out["drive"]["saliency"] = out["saliency"]
     try:
         base = identify_baseline([simulate(drive, {}, BASE_LOAD, seconds, seed=100 + j) for j in range(4)], prof,
-                                 window_s=min(0.5, seconds / 2), learn_path=True)
-        path = path_of(base.model.meta)  # the drive's voltage path where the healthy records pin it
+                                 window_s=min(0.5, seconds / 2))
         sets = [("null", {})] + ([(e, {e: draw_effect(drive, e, seed)}) for e in effects] if with_effects else [])
         for name, hidden in sets:
             recs = [simulate(drive, hidden, load, seconds, seed=200 + j) for j, load in enumerate(TEST_LOADS)]
-            doc = explain(base, prepare(recs, prof, path=path))
+            doc = explain(base, prepare(recs, prof))
             if name == "null":
                 out["null"] = {"claims": [c["effect"] for c in doc["candidates"] if c["significant"]],
                                "answer": doc.get("note"), "nrmse_control": doc["nrmse_control"],
