@@ -110,9 +110,14 @@ class Prepared:
         return tuple(2.0 / 3.0 * zero_sequence_sigma(x) ** 2 for x in (self.sig.v_abc, self.sig.i_abc))
 
 
-def prepare(records: list[Record], profile: DriveProfile, max_fit_s: float = 0.5) -> list[Prepared]:
+def prepare(records: list[Record], profile: DriveProfile, max_fit_s: float = 0.5,
+            path: tuple[float, float] | None = None) -> list[Prepared]:
     """Records -> workbench signals: the record's encoder angle and speed, or the PLL's with the angle
-    refined by :func:`follow_current`, less the PLL's lock-in; the hold-out split."""
+    refined by :func:`follow_current`, less the PLL's lock-in; the hold-out split. ``path``: the
+    baseline's voltage path (delay, advance) in samples (:func:`agent.workbench.voltage_path.path_of`),
+    applied to every record's voltage (:func:`agent.workbench.voltage_path.apply_path`)."""
+    from agent.workbench.voltage_path import apply_path
+
     out = []
     rate = profile.sampling.rate_hz
     for rec in records:
@@ -122,9 +127,12 @@ def prepare(records: list[Record], profile: DriveProfile, max_fit_s: float = 0.5
             raise InputError(f"{idle}: nothing to compare a model with", source=rec.source)
         if rec.theta_e is None:
             sig = follow_current(sig, rec).slice(int(SETTLE_S * rate), sig.n)
+        if path is not None:
+            sig = apply_path(sig, *path)
         length = min(int(FIT_FRACTION * sig.n), int(max_fit_s * rate))
         start = fit_start(sig, length)
-        out.append(Prepared(rec.source, sig, operating_point(sig, profile), start + length, dict(rec.meta), start))
+        meta = {**rec.meta, **({"voltage_path": tuple(path)} if path is not None else {})}  # what was applied
+        out.append(Prepared(rec.source, sig, operating_point(sig, profile), start + length, meta, start))
     return out
 
 
