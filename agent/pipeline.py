@@ -71,9 +71,24 @@ _ROWS = ("va", "vb", "vc", "ia", "ib", "ic", "omega_e", "i_d", "i_q", "v_d", "v_
 RING_DTYPE = np.float32
 
 
-def ring_bytes(rate_hz: float, span_s: float) -> int:
-    """Bytes of one drive's signal ring: a span of the float32 rows and the float64 angle."""
-    return int(round(span_s * rate_hz)) * (len(_ROWS) * np.dtype(RING_DTYPE).itemsize + 8)
+#: The newest window's residual is simulated hop by hop (:meth:`DriveMonitor._hop_residuals`) up to
+#: this many hops a window; beyond, the open windows' residuals would outweigh the gain.
+MAX_HOPS_PER_WINDOW = 4
+
+
+def residual_bytes(rate_hz: float, window_s: float, hop_s: float) -> int:
+    """Bytes of the open windows' residuals kept between hops (float32): with m hops a window,
+    m - 1 windows are open holding 1 .. m - 1 hops each (one hop at the default m = 2)."""
+    m = int(round(window_s / hop_s))
+    n_hop = int(round(hop_s * rate_hz))
+    return n_hop * m * (m - 1) // 2 * 4 if m <= MAX_HOPS_PER_WINDOW else 0
+
+
+def ring_bytes(rate_hz: float, span_s: float, window_s: float | None = None, hop_s: float | None = None) -> int:
+    """Bytes of one drive's signal ring: a span of the float32 rows and the float64 angle; given
+    ``window_s`` and ``hop_s``, also the open windows' residuals (:func:`residual_bytes`)."""
+    extra = residual_bytes(rate_hz, window_s, hop_s) if window_s and hop_s else 0
+    return int(round(span_s * rate_hz)) * (len(_ROWS) * np.dtype(RING_DTYPE).itemsize + 8) + extra
 
 
 @dataclass(frozen=True)
@@ -373,7 +388,8 @@ class DriveMonitor:
             if back + self.n_win > self._filled:
                 return None
             base = self.library.baselines[name]
-            if back == 0 and _per_sample(base.model) and round(base.thresholds.window_s * self.rate) == self.n_win:
+            if (back == 0 and _per_sample(base.model) and self.n_win <= MAX_HOPS_PER_WINDOW * self.n_hop
+                    and round(base.thresholds.window_s * self.rate) == self.n_win):
                 self._hop_residuals(name)
                 if not self._clean(self.n_win):
                     return None
@@ -395,7 +411,9 @@ class DriveMonitor:
         is read out once and simulated from the state each open window reached (and from the
         measured current for the window that starts on it), which continues every window's
         free run exactly where a simulation of the whole window would be (the same C recursion,
-        split); a window that completes leaves its phase-a residual in ``done``."""
+        split, the state carried in float64); the residual of a hop is kept in float32 until its
+        window completes (:func:`residual_bytes`); a window that completes leaves its phase-a
+        residual in ``done``."""
         ow, model = self._open, self.library.baselines[name].model
         if ow is None or ow.model != name or ow.upto < self._samples - self.n_win:
             ow = self._open = _OpenWindows(name, self._samples - self.n_win)  # start afresh from the ring
@@ -413,6 +431,8 @@ class DriveMonitor:
             for win in [v for v in ow.windows if len(v[1]) * self.n_hop == self.n_win]:
                 ow.windows.remove(win)
                 ow.done = {hop_end: np.concatenate(win[1])}
+            for win in ow.windows:  # kept until the next hop: float32, as the ring
+                win[1][-1] = win[1][-1].astype(np.float32)
             ow.upto = hop_end
 
     def _hop(self) -> DriveStatus | None:

@@ -453,8 +453,10 @@ def test_relearn_is_refused_while_the_drive_reads_warning_and_starts_when_it_rea
 def test_hop_by_hop_residual_equals_the_whole_window_simulation(library):
     """The newest window's residual is simulated hop by hop, each open window's free run carried
     across hops (agent.pipeline._hop_residuals): at every hop its spectrum equals the whole
-    window's simulation from the ring (agent.baseline.residual_spectra), bit for bit, through a
-    fault, a NaN burst (bad input, then recovery) and a gap."""
+    window's simulation from the ring (agent.baseline.residual_spectra) to float32 precision (the
+    open windows keep their hops' residuals in float32; a state not carried exactly would leave a
+    transient orders above that), through a fault, a NaN burst (bad input, then recovery) and a
+    gap. Four hops a window here: three windows are open at a time."""
     from dataclasses import replace
 
     from agent.baseline import residual_spectra
@@ -474,7 +476,7 @@ def test_hop_by_hop_residual_equals_the_whole_window_simulation(library):
         part = mon._signals(mon.n_win, 0, phases=False)
         part = replace(part, cos_sin=cos_sin32(part.theta_e))
         whole = residual_spectra(base.model, part, base.thresholds.window_s, base.thresholds.freqs_hz[-1])[1][0]
-        np.testing.assert_array_equal(mon._spectra[key], whole)
+        np.testing.assert_allclose(mon._spectra[key], whole, rtol=1e-5, atol=1e-6 * whole.max())
         compared += 1
 
     first = 0
