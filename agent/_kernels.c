@@ -14,6 +14,10 @@
 
 #define PI 3.14159265358979323846 /* the double nearest pi, as math.pi */
 
+/* The interface's version (agent/kernels.py refuses a library built from another one). 2: the
+ * PLL's state of 9 and its cos/sin output. */
+int kernels_abi(void) { return 2; }
+
 /* cos and sin of a small angle x (|x| <= SMALL_ANGLE) by their Taylor series, short where |x| <=
  * 1/16 (to x^8 / x^9) and to x^14 / x^13 above: the first term left out is below 1e-19 there,
  * far under an ulp of the result. Estrin's scheme (pairs of terms, powers of x^2 in parallel):

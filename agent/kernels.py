@@ -20,12 +20,19 @@ from numpy.ctypeslib import ndpointer
 _NAME = "_kernels"
 
 
+_ABI = 2  #: the interface of agent/_kernels.c this module calls (its kernels_abi())
+
+
 def _load() -> ctypes.CDLL:
     here = Path(__file__).resolve().parent
     for suffix in importlib.machinery.EXTENSION_SUFFIXES:
         path = here / (_NAME + suffix)
         if path.is_file():
-            return ctypes.CDLL(str(path))
+            lib = ctypes.CDLL(str(path))
+            if not hasattr(lib, "kernels_abi") or lib.kernels_abi() != _ABI:
+                raise ImportError(f"the agent's C kernels ({path}) were built from an older agent/_kernels.c: "
+                                  "run `make setup` (or `pip install --no-build-isolation -e .`) again")
+            return lib
     missing = here / (_NAME + importlib.machinery.EXTENSION_SUFFIXES[0])
     raise ImportError(f"the agent's C kernels are not built ({missing} is missing): run `make setup` "
                       "(or `pip install --no-build-isolation -e .`) in the project directory")
