@@ -20,12 +20,19 @@ from numpy.ctypeslib import ndpointer
 _NAME = "_kernels"
 
 
+_ABI = 2  #: the interface of agent/_kernels.c this module calls (its kernels_abi())
+
+
 def _load() -> ctypes.CDLL:
     here = Path(__file__).resolve().parent
     for suffix in importlib.machinery.EXTENSION_SUFFIXES:
         path = here / (_NAME + suffix)
         if path.is_file():
-            return ctypes.CDLL(str(path))
+            lib = ctypes.CDLL(str(path))
+            if not hasattr(lib, "kernels_abi") or lib.kernels_abi() != _ABI:
+                raise ImportError(f"the agent's C kernels ({path}) were built from an older agent/_kernels.c: "
+                                  "run `make setup` (or `pip install --no-build-isolation -e .`) again")
+            return lib
     missing = here / (_NAME + importlib.machinery.EXTENSION_SUFFIXES[0])
     raise ImportError(f"the agent's C kernels are not built ({missing} is missing): run `make setup` "
                       "(or `pip install --no-build-isolation -e .`) in the project directory")
@@ -36,12 +43,12 @@ _IN = ndpointer(np.float64, flags="C_CONTIGUOUS")
 _OUT = ndpointer(np.float64, flags=("C_CONTIGUOUS", "WRITEABLE"))
 
 _lib.pll_run.restype = None
-_lib.pll_run.argtypes = [_IN, ctypes.c_ssize_t, _IN, _IN, _OUT, _OUT, _OUT]
+_lib.pll_run.argtypes = [_IN, ctypes.c_ssize_t, _IN, _IN, _OUT, _OUT, _OUT, _OUT]
 _lib.simulate_ltv.restype = None
 _lib.simulate_ltv.argtypes = [_IN, _IN, _IN, _IN, _IN, ctypes.c_ssize_t, _OUT]
 
 #: Length of the PLL's parameter vector and of its state vector.
-PLL_N_PAR, PLL_N_STATE = 10, 6
+PLL_N_PAR, PLL_N_STATE = 10, 9
 
 
 def _f64(a, shape: tuple[int | None, ...], name: str) -> np.ndarray:
@@ -54,22 +61,23 @@ def _f64(a, shape: tuple[int | None, ...], name: str) -> np.ndarray:
     return a
 
 
-def pll_run(x_abc, clarke, par, zi) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Run the SRF-PLL over ``x_abc`` ``(3, N)`` from state ``zi`` (6,); returns theta, omega, zf.
+def pll_run(x_abc, clarke, par, zi, cos_sin: bool = False):
+    """Run the SRF-PLL over ``x_abc`` ``(3, N)`` from state ``zi`` (9,); returns theta, omega, zf,
+    and with ``cos_sin`` also ``(4, N)``: cos and sin of theta and of theta + Ts omega / 2.
 
     ``clarke`` ``(2, 3)``: the Clarke rows giving alpha, beta. ``par`` = (Ts, wn_track, wn_acq,
     taper per sample, lock-filter coefficient, lock threshold, unlock threshold, lock samples,
     min amplitude, damping); ``zi``/``zf`` = (angle, integrator omega, filtered error, samples
-    below threshold, locked 0/1, natural frequency wn). ``zi`` is not modified. See
-    :mod:`agent.pll` for the loop.
+    below threshold, locked 0/1, natural frequency wn, the angle's phasor cos and sin, its steps
+    since exact: 0 in a new state). ``zi`` is not modified. See :mod:`agent.pll` for the loop.
     """
     x = _f64(x_abc, (3, None), "x_abc")
     n = x.shape[1]
-    theta, omega = np.empty(n), np.empty(n)
+    theta, omega, cs = np.empty(n), np.empty(n), np.empty((4, n))
     zf = np.array(zi, dtype=np.float64)  # a copy: the kernel updates the state in place
     _lib.pll_run(x, n, _f64(clarke, (2, 3), "clarke"), _f64(par, (PLL_N_PAR,), "par"),
-                 _f64(zf, (PLL_N_STATE,), "zi"), theta, omega)
-    return theta, omega, zf
+                 _f64(zf, (PLL_N_STATE,), "zi"), theta, omega, cs)
+    return (theta, omega, zf, cs) if cos_sin else (theta, omega, zf)
 
 
 def simulate_ltv(a0, a1, omega, u, x0) -> np.ndarray:

@@ -50,6 +50,8 @@ from agent.sanity import not_running_of
 from agent.library import ModelLibrary
 from agent.model import BASE_TERMS, Signals, input_power, regressors
 from agent.pll import PLL
+from agent.kernels import simulate_ltv
+from agent.spectrum import _window
 from agent.training import ACCEPT_FLAG, fault_reading
 from agent.profile import DriveProfile
 from protocols.base import Block, DriveStatus
@@ -69,9 +71,24 @@ _ROWS = ("va", "vb", "vc", "ia", "ib", "ic", "omega_e", "i_d", "i_q", "v_d", "v_
 RING_DTYPE = np.float32
 
 
-def ring_bytes(rate_hz: float, span_s: float) -> int:
-    """Bytes of one drive's signal ring: a span of the float32 rows and the float64 angle."""
-    return int(round(span_s * rate_hz)) * (len(_ROWS) * np.dtype(RING_DTYPE).itemsize + 8)
+#: The newest window's residual is simulated hop by hop (:meth:`DriveMonitor._hop_residuals`) up to
+#: this many hops a window; beyond, the open windows' residuals would outweigh the gain.
+MAX_HOPS_PER_WINDOW = 4
+
+
+def residual_bytes(rate_hz: float, window_s: float, hop_s: float) -> int:
+    """Bytes of the open windows' residuals kept between hops (float32): with m hops a window,
+    m - 1 windows are open holding 1 .. m - 1 hops each (one hop at the default m = 2)."""
+    m = int(round(window_s / hop_s))
+    n_hop = int(round(hop_s * rate_hz))
+    return n_hop * m * (m - 1) // 2 * 4 if m <= MAX_HOPS_PER_WINDOW else 0
+
+
+def ring_bytes(rate_hz: float, span_s: float, window_s: float | None = None, hop_s: float | None = None) -> int:
+    """Bytes of one drive's signal ring: a span of the float32 rows and the float64 angle; given
+    ``window_s`` and ``hop_s``, also the open windows' residuals (:func:`residual_bytes`)."""
+    extra = residual_bytes(rate_hz, window_s, hop_s) if window_s and hop_s else 0
+    return int(round(span_s * rate_hz)) * (len(_ROWS) * np.dtype(RING_DTYPE).itemsize + 8) + extra
 
 
 @dataclass(frozen=True)
@@ -104,6 +121,42 @@ def hop_sums(sig: Signals) -> HopSums:
     return HopSums(sig.n, float(p.sum()), float(w.sum()), float(i[1].sum()), float(np.einsum("ij,ij->", i, i)),
                    tuple(i.min(axis=1).tolist()), tuple(i.max(axis=1).tolist()), mean, float(dth @ dth),
                    float(dth @ w), float(dth @ p), float(w @ w), float(w @ p))
+
+
+class _OpenWindows:
+    """The windows of one baseline's model whose phase-a residual is simulated hop by hop: per open
+    window [start sample, residual parts (one a hop), state at the next hop's first sample]; the
+    stream sample ``upto`` they reach; ``done``: the last completed window's residual by end sample."""
+
+    def __init__(self, model: str, upto: int):
+        self.model, self.upto = model, upto
+        self.windows: list[list] = []
+        self.done: dict[int, np.ndarray] = {}
+
+
+def _per_sample(model) -> bool:
+    """True when the model's free run is a per-sample recursion of per-sample inputs, so that a
+    window's simulation can be split at hop boundaries (Euler, no effect terms)."""
+    return model.discretisation == "euler" and not model.extra_d and not model.extra_q
+
+
+def _ltv_step(a0: np.ndarray, a1: np.ndarray, w: float, u: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """One step of :func:`agent.kernels.simulate_ltv`, operation by operation as the C loop."""
+    w, ud, uq, d, q = float(w), float(u[0]), float(u[1]), float(x[0]), float(x[1])
+    return np.array([(float(a0[0, 0]) + w * float(a1[0, 0])) * d + (float(a0[0, 1]) + w * float(a1[0, 1])) * q + ud,
+                     (float(a0[1, 0]) + w * float(a1[1, 0])) * d + (float(a0[1, 1]) + w * float(a1[1, 1])) * q + uq])
+
+
+def _window_amplitude(x: np.ndarray, rate_hz: float, bins: int) -> np.ndarray:
+    """The first ``bins`` bins of :func:`agent.spectrum.amplitude_spectrum` (Hann) of one window
+    ``x``, the same values, without the magnitudes of the bins above."""
+    n = x.size
+    w = _window("hann", n)
+    amp = np.abs(np.fft.rfft(x * w)[:bins]) * (2.0 / w.sum())
+    amp[0] *= 0.5
+    if n % 2 == 0 and bins == n // 2 + 1:
+        amp[-1] *= 0.5
+    return amp
 
 
 @dataclass(frozen=True)
@@ -190,8 +243,10 @@ class DriveMonitor:
         self._theta_last = 0.0
         self._bad_until = 0  # stream sample until which spans contain NaN or saturated samples
         self._spectra: dict[tuple[str, int], np.ndarray] = {}  # (model, window end sample) -> spectrum
+        self._open: _OpenWindows | None = None  # the windows whose residual is being simulated hop by hop
         self._q_info: dict[int, tuple] = {}  # hop end sample -> (model, q-axis X^T X, X^T y)
         self._hop_sums: dict[int, HopSums] = {}  # hop end sample -> its sums (the span's hops)
+        self._open = None
         self.pll.reset()
         self.last_input = time.monotonic()
         self.alarms.new_stream()
@@ -209,10 +264,13 @@ class DriveMonitor:
         if block.theta_e is not None:
             theta = block.theta_e
             omega = block.omega_e if block.omega_e is not None else np.gradient(np.unwrap(theta)) * self.rate
+            cs = None
         else:
             if self._samples == 0:  # a new stream: the PLL starts where it starts, as offline (record_signals)
                 self.pll.reset(block.i_abc)
-            theta, omega = self.pll.process(block.i_abc if np.isfinite(block.i_abc).all() else np.nan_to_num(block.i_abc))
+            # the PLL's loop has the angle's cos and sin (and the voltages' mid angle's) at hand
+            theta, omega, cs = self.pll.process(block.i_abc if np.isfinite(block.i_abc).all()
+                                                else np.nan_to_num(block.i_abc), cos_sin=True)
         # continuous angle across blocks (Signals wants it unwrapped); kept below 2^20 rad by
         # shifting the whole buffer by whole turns, which changes no cosine and no difference
         step = np.diff(theta, prepend=self._theta_last)  # np.unwrap's result, a tenth of its overhead
@@ -228,8 +286,10 @@ class DriveMonitor:
             self._bad_until = self._samples + block.n + self.n_span  # spans containing this block are bad
         data = np.empty((len(_ROWS), block.n), dtype=self._ring.dtype)
         data[0:3], data[3:6], data[6] = block.v_abc, block.i_abc, omega
-        data[7:9] = park(CLARKE[:2] @ block.i_abc, *cos_sin32(theta))  # eq. 2
-        data[9:11] = park(CLARKE[:2] @ block.v_abc, *cos_sin32(theta + 0.5 * omega / self.rate))  # ZOH voltage, see Signals
+        if cs is None:
+            cs = np.concatenate((cos_sin32(theta), cos_sin32(theta + 0.5 * omega / self.rate)))
+        data[7:9] = park(CLARKE[:2] @ block.i_abc, cs[0], cs[1])  # eq. 2
+        data[9:11] = park(CLARKE[:2] @ block.v_abc, cs[2], cs[3])  # ZOH voltage (mid angle), see Signals
         data[11] = input_power(block.v_abc, block.i_abc)
         out, pos = [], 0
         while pos < block.n:
@@ -320,22 +380,60 @@ class DriveMonitor:
                             k * sums.theta_power / p, k * sums.omega_power / p)
 
     def _window_spectrum(self, name: str, end: int) -> np.ndarray | None:
-        """Residual spectrum of the window ending at stream sample ``end`` (cached)."""
+        """Residual spectrum of the window ending at stream sample ``end`` (cached). The newest
+        window's residual comes hop by hop (:meth:`_hop_residuals`) where the model allows it."""
         key = (name, end)
         if key not in self._spectra:
             back = self._samples - end
             if back + self.n_win > self._filled:
                 return None
             base = self.library.baselines[name]
-            part = self._signals(self.n_win, back, phases=bool(base.model.extra_d or base.model.extra_q))
-            if part is None:
-                return None
-            part = replace(part, cos_sin=cos_sin32(part.theta_e))
-            self._spectra[key] = residual_spectra(base.model, part, base.thresholds.window_s,
-                                                  base.thresholds.freqs_hz[-1])[1][0]
+            if (back == 0 and _per_sample(base.model) and self.n_win <= MAX_HOPS_PER_WINDOW * self.n_hop
+                    and round(base.thresholds.window_s * self.rate) == self.n_win):
+                self._hop_residuals(name)
+                if not self._clean(self.n_win):
+                    return None
+                self._spectra[key] = _window_amplitude(self._open.done.pop(end), self.rate,
+                                                       base.thresholds.freqs_hz.size)
+            else:
+                part = self._signals(self.n_win, back, phases=bool(base.model.extra_d or base.model.extra_q))
+                if part is None:
+                    return None
+                part = replace(part, cos_sin=cos_sin32(part.theta_e))
+                self._spectra[key] = residual_spectra(base.model, part, base.thresholds.window_s,
+                                                      base.thresholds.freqs_hz[-1])[1][0]
             for old in [k for k in self._spectra if k[1] <= self._samples - self.n_span]:
                 del self._spectra[old]
         return self._spectra[key]
+
+    def _hop_residuals(self, name: str) -> None:
+        """Bring the open windows' residuals up to the newest sample: each hop since the last call
+        is read out once and simulated from the state each open window reached (and from the
+        measured current for the window that starts on it), which continues every window's
+        free run exactly where a simulation of the whole window would be (the same C recursion,
+        split, the state carried in float64); the residual of a hop is kept in float32 until its
+        window completes (:func:`residual_bytes`); a window that completes leaves its phase-a
+        residual in ``done``."""
+        ow, model = self._open, self.library.baselines[name].model
+        if ow is None or ow.model != name or ow.upto < self._samples - self.n_win:
+            ow = self._open = _OpenWindows(name, self._samples - self.n_win)  # start afresh from the ring
+        a0, a1 = model.state_matrices()
+        for hop_end in range(ow.upto + self.n_hop, self._samples + 1, self.n_hop):
+            part = self._signals(self.n_hop, self._samples - hop_end, checked=False, phases=False)
+            c, s = cos_sin32(part.theta_e)
+            u, w = model.exogenous(part), part.omega_e
+            ow.windows.append([hop_end - self.n_hop, [], part.i_dq[:, 0]])
+            for win in ow.windows:
+                x = simulate_ltv(a0, a1, w, u, win[2])
+                r_d, r_q = part.i_dq - x
+                win[1].append(r_d * c - r_q * s)
+                win[2] = _ltv_step(a0, a1, w[-1], u[:, -1], x[:, -1])
+            for win in [v for v in ow.windows if len(v[1]) * self.n_hop == self.n_win]:
+                ow.windows.remove(win)
+                ow.done = {hop_end: np.concatenate(win[1])}
+            for win in ow.windows:  # kept until the next hop: float32, as the ring
+                win[1][-1] = win[1][-1].astype(np.float32)
+            ow.upto = hop_end
 
     def _hop(self) -> DriveStatus | None:
         """One assessment: samples -> signals -> operating point -> baseline -> residual -> evidence -> decision."""

@@ -10,7 +10,9 @@ samples before it). ``omega_e`` (electrical rad/s) is the loop-filter integrator
 of the proportional path's ripple.
 
 Loop. Phase detector ``e = atan2(-d, q)`` (rad): the exact phase error, independent of the input
-amplitude, so the loop gain does not depend on the current level. PI loop filter, damping
+amplitude, so the loop gain does not depend on the current level (the C loop, :func:`agent.kernels.pll_run`,
+evaluates it by the atan series near lock and rotates the angle's cos/sin phasor by each step: the
+same values to an ulp or two, without libm's cos, sin, hypot and atan2 every sample). PI loop filter, damping
 ``1/sqrt(2)``: ``Kp = 2 zeta wn``, ``Ki = wn**2``; closed-loop phase transfer
 ``H(s) = (Kp s + Ki) / (s**2 + Kp s + Ki)`` whose -3 dB bandwidth is ``2.058 fn``; from the true
 speed to ``omega_e`` it is ``Ki / (s**2 + Kp s + Ki)`` (-40 dB/decade).
@@ -93,20 +95,22 @@ class PLL:
         start = None if x_abc is None else input_start(x_abc, self.rate_hz)
         f0, th0 = start or (self.f_nominal_hz, self.theta0)
         th0 = (th0 + math.pi) % (2.0 * math.pi) - math.pi
-        self._state = np.array([th0, 2.0 * math.pi * f0, 0.0, 0.0, 0.0, self._wn_acq])
+        self._state = np.array([th0, 2.0 * math.pi * f0, 0.0, 0.0, 0.0, self._wn_acq, 1.0, 0.0, 0.0])
 
     @property
     def locked(self) -> bool:
         """True once the lock detector has declared lock (and until it is lost)."""
         return bool(self._state[4])
 
-    def process(self, x_abc) -> tuple[np.ndarray, np.ndarray]:
-        """Track a block ``(3, N)``; returns ``theta_e`` (rad, in ``[-pi, pi)``), ``omega_e`` (rad/s)."""
+    def process(self, x_abc, cos_sin: bool = False):
+        """Track a block ``(3, N)``; returns ``theta_e`` (rad, in ``[-pi, pi)``), ``omega_e`` (rad/s),
+        and with ``cos_sin`` also ``(4, N)``: cos and sin of ``theta_e`` and of the mid angle
+        ``theta_e + omega_e T_s / 2`` (the Park rotations of currents and held voltages)."""
         x = np.ascontiguousarray(x_abc, dtype=float)
         if x.ndim != 2 or x.shape[0] != 3:
             raise ValueError(f"x_abc must be shaped (3, N), got {x.shape}")
-        theta, omega, self._state = pll_run(x, self._clarke, self._par, self._state)
-        return theta, omega
+        theta, omega, self._state, cs = pll_run(x, self._clarke, self._par, self._state, cos_sin=True)
+        return (theta, omega, cs) if cos_sin else (theta, omega)
 
 
 def input_start(x_abc, rate_hz: float, span_s: float = 0.02) -> tuple[float, float] | None:

@@ -4,9 +4,9 @@ and the systemd notify socket:
 
     python -m bench.bench_scale [--drives 1,10,50,100] [--seconds 40] [--realtime-s 40]
 
-* chain: one drive's signal chain in this process, the pipeline of the revision before the
-  plant-scale work (``REFERENCE``) and this one on the same blocks, alternating, in one run:
-  signal seconds per CPU second;
+* chain: one drive's signal chain in this process, the revision before the plant-scale work
+  (``REFERENCE``: its whole ``agent`` package, C kernels included) and this one on the same
+  blocks, alternating, in one run: signal seconds per CPU second;
 * lossless: N drives replaying ``seconds`` of signal each as fast as the agent takes them: signal
   seconds (all drives) per CPU second (all the agent's processes), peak resident memory (the sum
   of the processes' high-water marks);
@@ -24,6 +24,7 @@ import dataclasses
 import importlib.util
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -338,17 +339,30 @@ def realtime(tmp: Path, data: dict, drives: int, onset_s: float, seconds: float,
             "watchdog_pings": pings}
 
 
-def _reference_pipeline(revision: str):
-    """The pipeline module of ``revision`` (today's), loaded beside this one."""
-    source = subprocess.run(["git", "show", f"{revision}:agent/pipeline.py"], cwd=ROOT, capture_output=True, text=True,
-                            check=True).stdout
-    path = Path(tempfile.mkdtemp(prefix="bench-ref-")) / "pipeline_reference.py"
-    path.write_text(source)
-    spec = importlib.util.spec_from_file_location("pipeline_reference", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
+def _reference_package(revision: str):
+    """``revision``'s whole ``agent`` package (today's code: its pipeline and every module it uses,
+    the PLL's C loop included), loaded beside this one as ``agent_reference`` (its imports
+    renamed, its C kernels built with setup.py's flags), so that a change to a shared module
+    cannot speed the reference up too."""
+    import io
+    import sysconfig
+    import tarfile
+
+    archive = subprocess.run(["git", "archive", revision, "agent"], cwd=ROOT, capture_output=True, check=True).stdout
+    tmp = Path(tempfile.mkdtemp(prefix="bench-ref-"))
+    tarfile.open(fileobj=io.BytesIO(archive)).extractall(tmp)
+    pkg = tmp / "agent_reference"
+    (tmp / "agent").rename(pkg)
+    for py in pkg.rglob("*.py"):
+        py.write_text(re.sub(r"(?m)^(\s*)(from|import) agent(?=[.\s])", r"\1\2 agent_reference", py.read_text()))
+    subprocess.run([os.environ.get("CC", "cc"), "-O2", "-ffp-contract=off", "-shared", "-fPIC",
+                    str(pkg / "_kernels.c"), "-o", str(pkg / ("_kernels" + sysconfig.get_config_var("EXT_SUFFIX"))),
+                    "-lm"], check=True)
+    sys.path.insert(0, str(tmp))
+    try:
+        return importlib.import_module("agent_reference")
+    finally:
+        sys.path.remove(str(tmp))
 
 
 def chain(data: dict, seconds: float, revision: str = REFERENCE) -> dict:
@@ -360,11 +374,13 @@ def chain(data: dict, seconds: float, revision: str = REFERENCE) -> dict:
     from agent.records import load_record
     from protocols.base import Block
 
-    profile = load_profile(PROFILE)
-    lib = ModelLibrary(data["state"] / "library")
+    _reference_package(revision)
+    ref_pipeline, ref_library, ref_profile = (importlib.import_module(f"agent_reference.{m}")
+                                              for m in ("pipeline", "library", "profile"))
     rec = load_record(data["healthy"][0])
-    monitors = {"reference": _reference_pipeline(revision).DriveMonitor("d1", profile, lib),
-                "this": pipeline.DriveMonitor("d1", profile, lib)}
+    monitors = {"reference": ref_pipeline.DriveMonitor("d1", ref_profile.load_profile(PROFILE),
+                                                       ref_library.ModelLibrary(data["state"] / "library")),
+                "this": pipeline.DriveMonitor("d1", load_profile(PROFILE), ModelLibrary(data["state"] / "library"))}
     cpu = dict.fromkeys(monitors, 0.0)
     first, played = 0, 0.0
     while played < seconds + 8.0:

@@ -448,3 +448,42 @@ def test_relearn_is_refused_while_the_drive_reads_warning_and_starts_when_it_rea
     out = feed(healthy, [sim("healthy", 80.0, 8.0, 100)])
     assert out[-1][1].state != "warning"
     assert healthy.relearn() is None and healthy.learning
+
+
+def test_hop_by_hop_residual_equals_the_whole_window_simulation(library):
+    """The newest window's residual is simulated hop by hop, each open window's free run carried
+    across hops (agent.pipeline._hop_residuals): at every hop its spectrum equals the whole
+    window's simulation from the ring (agent.baseline.residual_spectra) to float32 precision (the
+    open windows keep their hops' residuals in float32; a state not carried exactly would leave a
+    transient orders above that), through a fault, a NaN burst (bad input, then recovery) and a
+    gap. Four hops a window here: three windows are open at a time."""
+    from dataclasses import replace
+
+    from agent.baseline import residual_spectra
+    from agent.frames import cos_sin32
+
+    mon = DriveMonitor("d1", profile(), library, CFG)
+    base = library.baselines["b80"]
+    stream = splice(sim("healthy", 80.0, 12.0, 121), sim("gear_severe_wear", 80.0, 12.0, 121), int(4.0 * RATE))
+    stream = with_nan(stream, int(6.0 * RATE), int(6.05 * RATE))
+    compared = 0
+
+    def check():
+        nonlocal compared
+        key = ("b80", mon._samples)
+        if mon.status.quality != "good" or key not in mon._spectra:
+            return
+        part = mon._signals(mon.n_win, 0, phases=False)
+        part = replace(part, cos_sin=cos_sin32(part.theta_e))
+        whole = residual_spectra(base.model, part, base.thresholds.window_s, base.thresholds.freqs_hz[-1])[1][0]
+        np.testing.assert_allclose(mon._spectra[key], whole, rtol=1e-5, atol=1e-6 * whole.max())
+        compared += 1
+
+    first = 0
+    for rec in (stream, sim("healthy", 80.0, 6.0, 122)):
+        for blk in blocks_of(rec, BLOCK, first):
+            if mon.process(blk):
+                check()
+        first += rec.n + 77_777  # a gap before the second record
+    assert mon._open is not None and mon._open.model == "b80"
+    assert compared >= 12  # before the NaN, after it, after the gap

@@ -254,7 +254,7 @@ MEMORY_LIMIT_MB = 1152.0
 
 def memory_estimate(cfg) -> dict:
     """The agent's resident memory for ``cfg``, MB: its process, the DSP workers
-    (agent.runtime.workers) and per drive the signal ring (agent.pipeline.ring_bytes), a full
+    (agent.runtime.workers) and per drive the signal ring and the open windows' residuals (agent.pipeline.ring_bytes), a full
     block queue (float32) and the measured overhead. Returns total_mb, per_drive_mb (the largest)
     and workers."""
     from agent.pipeline import PipelineConfig, ring_bytes
@@ -265,7 +265,8 @@ def memory_estimate(cfg) -> dict:
     for d in cfg.drives:
         rate = d.drive_profile.sampling.rate_hz
         block = getattr(d.source, "block_s", 0.1) * rate
-        ring = ring_bytes(rate, cfg.pipeline.window_s * PipelineConfig().span_windows)
+        ring = ring_bytes(rate, cfg.pipeline.window_s * PipelineConfig().span_windows, cfg.pipeline.window_s,
+                          cfg.pipeline.hop_s)
         drives.append((ring + QUEUE_BLOCKS * 6 * block * 4) / 1e6 + DRIVE_OVERHEAD_MB)
     workers = worker_count(cfg)
     total = AGENT_PROCESS_MB + (workers * WORKER_PROCESS_MB if workers > 1 else 0.0) + sum(drives)
