@@ -326,14 +326,11 @@ class BaselineBuilder:
 
 
 def identify_baseline(records: list[Record], profile: DriveProfile, *, refine: bool = False, progress=None,
-                      model: DQModel | None = None, learn_path: bool = False, **settings) -> Baseline:
+                      model: DQModel | None = None, **settings) -> Baseline:
     """Algs. 2-4 on m healthy records (``settings``: see :class:`BaselineBuilder`); ``refine`` adds the
     output-error refinement of the model; ``progress(i, n, text)`` is called per step when given.
     ``model``: learn thresholds and cluster with this model (e.g. a workbench refit with effects)
-    instead of the average of the per-record fits. ``learn_path``: learn the drive's voltage path from
-    the records for the workbench (:func:`agent.workbench.voltage_path.learn_path`, needs the workbench
-    install) into ``model.meta["voltage_path"]``; the baseline's own model stays fitted to the voltage
-    as reported, which is what the runtime agent reads."""
+    instead of the average of the per-record fits."""
     builder = BaselineBuilder(profile, **settings)
     if model is not None:
         builder.set_model(model)
@@ -355,19 +352,7 @@ def identify_baseline(records: list[Record], profile: DriveProfile, *, refine: b
         builder.add_spectra(sig, rec.source)
     base = builder.build()
     base.settings["refine"] = refine
-    if learn_path and "voltage_path" not in base.model.meta:
-        base.model.meta["voltage_path"] = learned_path(base, records)
     return base
-
-
-def learned_path(base: Baseline, records: list[Record]) -> dict:
-    """The voltage path of ``base``'s healthy ``records`` (samples), or why there is none."""
-    try:
-        from agent.workbench.voltage_path import learn_path
-    except ImportError as err:  # the gateway install: no workbench
-        return {"delay_samples": None, "advance_samples": None,
-                "note": f"not learned: this install has no model workbench ({err.name} missing)"}
-    return learn_path(base, records)
 
 
 def average_model(fits: list[FitResult], robust: bool = False, psi_m: float | None = None) -> DQModel:

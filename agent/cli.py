@@ -166,7 +166,7 @@ def cmd_identify(args) -> None:
     t0 = time.perf_counter()
     base = identify_baseline(recs, profile, form=args.form, robust=args.robust, window_s=args.window,
                              confidence=args.confidence, region=args.region, spectrum_rule=args.spectrum_rule,
-                             prefilter_hz=args.prefilter, progress=_progress, learn_path=True)
+                             prefilter_hz=args.prefilter, progress=_progress)
     findings = check_training(base.training, baseline=base, replaced=replaced, replaced_name=f"--out {args.out}",
                               accept_fault_evidence=args.accept_fault_evidence)
     if findings:
@@ -195,7 +195,6 @@ def cmd_identify(args) -> None:
            "operating_point": {k: base.operating_point[k] for k in ("fe_hz", "load_pct")},
            "cluster": {"centre": base.cluster.centre, "limit": base.cluster.limit, "region": base.cluster.region},
            "seconds": round(time.perf_counter() - t0, 3), "alarm": _alarm_evidence(base),
-           "voltage_path": base.model.meta.get("voltage_path"),
            "warnings": list(phys.get("conflicts", {}).values())}
     for w in doc["warnings"]:  # a nameplate value the records contradict: dropped, the records' value kept
         log.warning("%s", w)

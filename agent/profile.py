@@ -48,6 +48,13 @@ class Motor:
 class Sampling:
     rate_hz: float
     voltage_source: str = "measured"  #: "measured" or "reference" (drive's voltage command)
+    #: the voltage path where the drive's timing is known (agent.workbench.voltage_path): the reported
+    #: voltage is the applied one delayed by this many samples (signed: -1 for a drive reporting its
+    #: command one computation period before applying it; a filter's lag > 0) ...
+    voltage_delay_samples: float | None = None
+    #: ... and turned back by this many samples of omega_e T_s (1.5 for a voltage held in dq, or an
+    #: angle compensation, after one computation period)
+    voltage_advance_samples: float | None = None
 
 
 @dataclass(frozen=True)
@@ -151,7 +158,7 @@ def _build(cls, table: dict, section: str, source: str):
             raise InputError(f"key '{section}.{name}' has the wrong type ({type(value).__name__})", source=source)
         if isinstance(value, (int, float)) and not math.isfinite(value):
             raise InputError(f"key '{section}.{name}' must be finite, got {value}", source=source)
-        if isinstance(value, (int, float)) and value <= 0 and not name.endswith("_temp_c"):
+        if isinstance(value, (int, float)) and value <= 0 and not name.endswith(("_temp_c", "_samples")):
             raise InputError(f"key '{section}.{name}' must be positive, got {value}", source=source)
         values[name] = value
     return cls(**values)
@@ -170,6 +177,11 @@ def parse_profile(data: dict, source: str = "<profile>") -> DriveProfile:
         parts[section] = _build(cls, table, section, source)
     if parts["sampling"].voltage_source not in ("measured", "reference"):
         raise InputError("key 'sampling.voltage_source' must be \"measured\" or \"reference\"", source=source)
+    for key, (lo, hi) in (("voltage_delay_samples", (-1.5, 2.0)), ("voltage_advance_samples", (-1.0, 2.0))):
+        value = getattr(parts["sampling"], key)
+        if value is not None and not lo <= value <= hi:
+            raise InputError(f"key 'sampling.{key}' = {value:g} is outside its physical range {lo:g}..{hi:g} samples",
+                             source=source)
     tr = parts["transmission"]
     if tr.kind not in ("gear", "chain"):
         raise InputError("key 'transmission.kind' must be \"gear\" or \"chain\"", source=source)

@@ -93,7 +93,7 @@ def judge(doc: dict, effect: str, true: dict, revealable: tuple[bool, str]) -> d
 
 def run_drive(args: tuple) -> dict:
     """Everything for one drive: its baseline, the null set and (``with_effects``) one set per effect."""
-    seed, seconds, with_effects, effects = args
+    seed, seconds, with_effects, effects, timing = args
     from agent.baseline import identify_baseline
     from agent.workbench.explain import explain
     from agent.workbench.fitting import prepare
@@ -101,8 +101,8 @@ def run_drive(args: tuple) -> dict:
 
     t0 = time.perf_counter()
     drive = draw_drive(seed)
-    prof = profile(drive)
-    out = {"seed": seed, "drive": {k: v for k, v in asdict(drive).items() if k in ATTRIBUTES},
+    prof = profile(drive, timing=timing)
+    out = {"seed": seed, "timing": timing, "drive": {k: v for k, v in asdict(drive).items() if k in ATTRIBUTES},
            "saliency": drive.lq_h / drive.ld_h, "rows": []}
     out["drive"]["saliency"] = out["saliency"]
     try:
@@ -126,10 +126,13 @@ def run_drive(args: tuple) -> dict:
     return out
 
 
-def run(n_drives: int, n_null: int, seconds: float, jobs: int, effects, say=print, path: Path | None = None) -> list:
+def run(n_drives: int, n_null: int, seconds: float, jobs: int, effects, say=print, path: Path | None = None,
+        timing: bool = True) -> list:
     """Run (or resume) the family: drives FIRST_SEED.. with effects for the first ``n_drives``,
-    null sets for the first max(n_null, n_drives); results appended to ``path`` (JSON lines)."""
-    path = path or RESULTS / f"family_{seconds:g}s.jsonl"
+    null sets for the first max(n_null, n_drives); results appended to ``path`` (JSON lines).
+    ``timing``: each profile states the drive's voltage path (as the drive's documentation gives it),
+    else the workbench takes the voltage as reported."""
+    path = path or RESULTS / f"family_{seconds:g}s{'' if timing else '_reported'}.jsonl"
     path.parent.mkdir(parents=True, exist_ok=True)
     done = {}
     if path.exists():
@@ -137,7 +140,7 @@ def run(n_drives: int, n_null: int, seconds: float, jobs: int, effects, say=prin
             r = json.loads(line)
             done[r["seed"]] = r
     total = max(n_null, n_drives)
-    todo = [(FIRST_SEED + j, seconds, j < n_drives, tuple(effects)) for j in range(total)
+    todo = [(FIRST_SEED + j, seconds, j < n_drives, tuple(effects), timing) for j in range(total)
             if FIRST_SEED + j not in done or (j < n_drives and not done[FIRST_SEED + j]["rows"]
                                                and "error" not in done[FIRST_SEED + j])]
     say(f"family: {total} drives ({n_drives} with {len(effects)} effects each), {len(done)} done before, "
@@ -304,6 +307,8 @@ def main(argv=None) -> int:
     p.add_argument("--seconds", type=float, default=1.0, help="record length, s (default 1.0)")
     p.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="worker processes (default: the cores)")
     p.add_argument("--effects", default="", help="comma-separated effect ids (default: the library's)")
+    p.add_argument("--reported-voltage", action="store_true",
+                   help="profiles without the drive's voltage path: the voltage taken as reported")
     p.add_argument("--short", action="store_true", help="`make test`'s form: 2 drives per effect, 0.6 s records")
     p.add_argument("--plot", default=str(ROOT / "docs" / "img" / "family_power.png"), help="power plot file")
     a = p.parse_args(argv)
@@ -317,11 +322,12 @@ def main(argv=None) -> int:
         p.error(f"--seconds: {a.seconds:g} is outside 0.4..10 s (the hold-out needs half of each record)")
     n_drives, n_null, seconds = (2, 2, 0.6) if a.short else (a.drives, a.null, a.seconds)
     say = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
-    path = RESULTS / (f"family_short.jsonl" if a.short else f"family_{seconds:g}s.jsonl")
+    path = RESULTS / (f"family_short.jsonl" if a.short else
+                      f"family_{seconds:g}s{'_reported' if a.reported_voltage else ''}.jsonl")
     if a.short and path.exists():
         path.unlink()
     t0 = time.perf_counter()
-    results = run(n_drives, n_null, seconds, a.jobs, effects, say, path)
+    results = run(n_drives, n_null, seconds, a.jobs, effects, say, path, timing=not a.reported_voltage)
     print(table(results, effects))
     print(f"\n{len(results)} drives, {time.perf_counter() - t0:.0f} s wall on {a.jobs} process(es), "
           f"{sum(r['seconds'] for r in results):.0f} s of drive work; results {path}")

@@ -1,24 +1,23 @@
-"""The drive's voltage path (agent.workbench.voltage_path): learned from healthy records against the
-independent reference bench.family.effects.voltage_path, stored in the model file, applied by the
-workbench before it fits."""
-
-import dataclasses
+"""The drive's voltage path (agent.workbench.voltage_path): stated in the profile, applied by the
+workbench before it fits, checked against the independent reference bench.family.effects.voltage_path."""
 
 import numpy as np
 import pytest
-from scipy.signal import butter, sosfiltfilt
 
 from agent.baseline import identify_baseline
+from agent.errors import InputError
 from agent.frames import CLARKE
 from agent.model import Signals
 from agent.modelfile import baseline_from_json, baseline_to_json
+from agent.profile import parse_profile
 from agent.workbench.explain import explain
 from agent.workbench.fitting import prepare
-from agent.workbench.voltage_path import apply_path, path_of
+from agent.workbench.voltage_path import apply_path, stated_path
 from bench.family import draw_drive, profile, simulate
 from bench.family.effects import voltage_path
 
 SEED = 20005  #: reference voltage, abc hold, one computation period: the path is (-1, 0)
+LOADS = (40.0, 60.0, 90.0, 100.0)
 
 
 def test_apply_path_shifts_and_turns_the_stationary_voltage():
@@ -34,64 +33,55 @@ def test_apply_path_shifts_and_turns_the_stationary_voltage():
     assert apply_path(sig, 0.0, 0.0) is sig
 
 
+def _doc(**sampling):
+    return {"motor": {"pole_pairs": 4, "rated_power_w": 2200.0, "rated_torque_nm": 14.0, "rated_speed_rpm": 1500.0},
+            "sampling": {"rate_hz": 25000.0, "voltage_source": "reference", **sampling},
+            "transmission": {"kind": "gear", "driving_teeth": 20, "driven_teeth": 40}}
+
+
+def test_the_profile_states_a_signed_path_within_its_physical_range():
+    assert stated_path(parse_profile(_doc())) is None
+    assert stated_path(parse_profile(_doc(voltage_delay_samples=-1))) == (-1.0, 0.0)
+    assert stated_path(parse_profile(_doc(voltage_delay_samples=-1, voltage_advance_samples=1.5))) == (-1.0, 1.5)
+    for key, value in (("voltage_delay_samples", -3.0), ("voltage_advance_samples", 2.5)):
+        with pytest.raises(InputError, match=f"sampling.{key}' = {value:g} is outside its physical range"):
+            parse_profile(_doc(**{key: value}), source="p.toml")
+
+
 @pytest.fixture(scope="module")
-def learned():
+def drive_and_base():
     drive = draw_drive(SEED)
-    prof = profile(drive)
-    healthy = [simulate(drive, {}, 80.0, 1.0, seed=100 + j) for j in range(4)]
-    return drive, prof, identify_baseline(healthy, prof, window_s=0.5, learn_path=True)
+    assert voltage_path(drive) == (-1.0, 0.0)
+    prof = profile(drive, timing=True)
+    base = identify_baseline([simulate(drive, {}, 80.0, 1.0, seed=100 + j) for j in range(4)], prof, window_s=0.5)
+    return drive, base
 
 
-def test_the_learned_path_is_the_drives(learned):
-    drive, _, base = learned
-    d, a = voltage_path(drive)
-    assert (d, a) == (-1.0, 0.0)
-    got = path_of(base.model.meta)
-    assert got is not None, base.model.meta["voltage_path"]
-    assert abs(got[0] - d) <= 0.15 and abs(got[1] - a) <= 0.3
+def test_the_model_file_keeps_the_stated_path(drive_and_base):
+    base = drive_and_base[1]
+    assert stated_path(baseline_from_json(baseline_to_json(base)).profile) == (-1.0, 0.0)
 
 
-def test_the_model_file_round_trips_the_path(learned):
-    base = learned[2]
-    again = baseline_from_json(baseline_to_json(base))
-    assert path_of(again.model.meta) == path_of(base.model.meta)
-    assert again.model.meta["voltage_path"]["source"] == "records"
-
-
-def _smooth(rec):
-    """The record with its voltage low-passed (zero phase) at a 20th of the sampling rate: no broadband left."""
-    sos = butter(4, 0.05 * rec.rate_hz, fs=rec.rate_hz, output="sos")
-    return dataclasses.replace(rec, v_abc=sosfiltfilt(sos, rec.v_abc, axis=1))
-
-
-def test_records_that_cannot_pin_it_give_no_path_and_say_so(learned):
-    drive, prof, _ = learned
-    base = identify_baseline([_smooth(simulate(drive, {}, 80.0, 1.0, seed=100 + j)) for j in range(4)], prof,
-                             window_s=0.5, learn_path=True)
-    meta = base.model.meta["voltage_path"]
-    assert path_of(base.model.meta) is None, meta
-    assert meta["delay_samples"] is None and "pins it" in meta["note"]
-
-
-@pytest.mark.xfail(strict=True, reason="known failure: at one load the lumped parameters absorb a measured voltage's "
-                   "filter lag (0.92 samples) and the scan pins the path near 0")
-def test_a_filter_lag_at_one_load_is_not_pinned_wrongly():
-    drive = draw_drive(20003)  # measured voltage, filter lag 0.92 samples
-    prof = profile(drive)
-    base = identify_baseline([simulate(drive, {}, 80.0, 1.0, seed=100 + j) for j in range(4)], prof, window_s=0.5,
-                             learn_path=True)
-    got = path_of(base.model.meta)
-    assert got is None or abs(got[0] - voltage_path(drive)[0]) <= 0.25
-
-
-def test_explain_with_the_path_claims_nothing_and_fits_better(learned):
-    drive, prof, base = learned
-    recs = [simulate(drive, {}, load, 1.0, seed=200 + j) for j, load in enumerate((40.0, 60.0, 90.0, 100.0))]
-    raw = explain(base, prepare(recs, prof))
-    moved = explain(base, prepare(recs, prof, path=path_of(base.model.meta)))
+def test_with_the_drives_path_stated_the_null_records_fit_better_and_claim_nothing(drive_and_base):
+    """Side by side on the same records: the profile without the path (the voltage as reported) and
+    with the drive's path."""
+    drive, base = drive_and_base
+    recs = [simulate(drive, {}, load, 1.0, seed=200 + j) for j, load in enumerate(LOADS)]
+    raw = explain(base, prepare(recs, profile(drive)))
+    moved = explain(base, prepare(recs, profile(drive, timing=True)))
     assert not [c["effect"] for c in moved["candidates"] if c["significant"]]
     ratio = lambda doc: doc["nrmse_control"] / doc["noise_floor"]  # noqa: E731
     assert ratio(moved) < 0.5 * ratio(raw), (ratio(moved), ratio(raw))
-    row = next(c for c in moved["candidates"] if c["effect"] == "voltage_delay")
-    total = row.get("unpinned_params", row["params"])  # reported as totals: the baseline's path plus the change
-    assert abs(total["delay_samples"] - -1.0) <= 0.5
+
+
+def test_an_extra_delay_is_named_and_reported_as_the_total_path(drive_and_base):
+    """A DAQ lag of one sample on top of the drive's own path: voltage_delay first, significant, its
+    delay the total (the stated -1 plus the extra +1) within a quarter sample."""
+    drive, base = drive_and_base
+    hidden = {"voltage_delay": {"extra_samples": 1.0}}
+    recs = [simulate(drive, hidden, load, 1.0, seed=300 + j) for j, load in enumerate(LOADS)]
+    doc = explain(base, prepare(recs, profile(drive, timing=True)))
+    top = doc["candidates"][0]
+    assert top["effect"] == "voltage_delay" and top["significant"], [(c["effect"], c["significant"]) for c in doc["candidates"]]
+    want = voltage_path(drive, 1.0)[0]
+    assert abs(top["params"]["delay_samples"] - want) <= 0.25, (top["params"], want)

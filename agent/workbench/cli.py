@@ -26,7 +26,6 @@ def _load(args, model_path):
     from agent.cli import _load_records
     from agent.modelfile import load_baseline
     from agent.workbench.fitting import prepare
-    from agent.workbench.voltage_path import path_of
 
     if getattr(args, "report", None):  # before the work: a folder that cannot be written is found at once
         from agent.workbench.report import report_folder
@@ -35,7 +34,7 @@ def _load(args, model_path):
 
     base = load_baseline(model_path)
     recs = _load_records(args.data, base.profile, min_samples=int(0.2 * base.profile.sampling.rate_hz))
-    return base, recs, prepare(recs, base.profile, path=path_of(base.model.meta))
+    return base, recs, prepare(recs, base.profile)
 
 
 def _pct(v) -> str:

@@ -59,7 +59,8 @@ def rated_current(motor, psi_m: float) -> float:
 def context(ref, preps: list[Prepared], profile) -> dict:
     """What an effect's ``report`` needs: fitted base values, the rated current, the records' signals,
     the voltage path applied to them (:func:`agent.workbench.fitting.prepare`; voltage_delay reports totals)."""
-    return {**ref.phys, "voltage_path": preps[0].meta.get("voltage_path") if preps else None, "i_rated": float(rated_current(profile.motor, ref.phys["psi_m"])), "ts": profile.ts,
+    return {**ref.phys, "voltage_path": preps[0].meta.get("voltage_path") if preps else None,
+            "i_rated": float(rated_current(profile.motor, ref.phys["psi_m"])), "ts": profile.ts,
             "t_mid": float(np.mean([0.5 * p.sig.n * p.sig.ts for p in preps])),
             "signals": [p.sig for p in preps]}
 
@@ -442,6 +443,4 @@ def add_effects(baseline, preps: list[Prepared], effect_ids) -> tuple[object, di
         if not h["stable"]:
             figures["warnings"].append(h["note"])
     r.model.meta["effect_params"] = figures["params"]
-    if "voltage_path" in model.meta:  # the new version's coefficients are for the voltage corrected with it
-        r.model.meta["voltage_path"] = model.meta["voltage_path"]
     return r, figures

@@ -110,13 +110,13 @@ class Prepared:
         return tuple(2.0 / 3.0 * zero_sequence_sigma(x) ** 2 for x in (self.sig.v_abc, self.sig.i_abc))
 
 
-def prepare(records: list[Record], profile: DriveProfile, max_fit_s: float = 0.5,
-            path: tuple[float, float] | None = None) -> list[Prepared]:
+def prepare(records: list[Record], profile: DriveProfile, max_fit_s: float = 0.5) -> list[Prepared]:
     """Records -> workbench signals: the record's encoder angle and speed, or the PLL's with the angle
-    refined by :func:`follow_current`, less the PLL's lock-in; the hold-out split. ``path``: the
-    baseline's voltage path (delay, advance) in samples (:func:`agent.workbench.voltage_path.path_of`),
-    applied to every record's voltage (:func:`agent.workbench.voltage_path.apply_path`)."""
-    from agent.workbench.voltage_path import apply_path
+    refined by :func:`follow_current`, less the PLL's lock-in; the voltage path the profile states
+    applied to the voltage (:mod:`agent.workbench.voltage_path`); the hold-out split."""
+    from agent.workbench.voltage_path import apply_path, stated_path
+
+    path = stated_path(profile)
 
     out = []
     rate = profile.sampling.rate_hz

@@ -316,10 +316,12 @@ def incremental_inductances(i_d, i_q, fm: np.ndarray) -> tuple[np.ndarray, np.nd
     return a_qq / det, a_dd / det
 
 
-def profile(drive: Drive, nameplate: bool = False) -> DriveProfile:
+def profile(drive: Drive, nameplate: bool = False, timing: bool = False) -> DriveProfile:
     """The drive's profile (CONTRACT section 4); with ``nameplate``, R_s (a DC measurement at 20 C,
     with the records' winding temperature), psi_m, L_d and L_q, each within 5 % of the truth
-    (a random error drawn from the drive's seed)."""
+    (a random error drawn from the drive's seed); with ``timing``, the voltage path the drive's
+    documentation gives (computation delay, hold, logging, the DAQ filter's lag:
+    :func:`bench.family.effects.voltage_path` of the healthy drive)."""
     doc = {
         "name": f"family_{drive.seed}",
         "motor": {"pole_pairs": drive.pole_pairs, "rated_power_w": drive.rated_power_w,
@@ -334,4 +336,9 @@ def profile(drive: Drive, nameplate: bool = False) -> DriveProfile:
         doc["nameplate"] = {"rs_ohm": drive.rs_20c_ohm * err[0], "rs_temp_c": 20.0,
                             "winding_temp_c": drive.winding_temp_c, "psi_m_wb": drive.psi_m_wb * err[1],
                             "ld_h": drive.ld_h * err[2], "lq_h": drive.lq_h * err[3]}
+    if timing:
+        from bench.family.effects import voltage_path
+
+        delay, advance = voltage_path(drive)
+        doc["sampling"].update(voltage_delay_samples=delay, voltage_advance_samples=advance)
     return parse_profile(doc, source=f"family_{drive.seed}")
