@@ -45,22 +45,27 @@ def record_signals(record: Record, profile: DriveProfile) -> Signals:
 
 def operating_point(sig: Signals, profile: DriveProfile) -> dict[str, float]:
     """A record's operating point as a drive shows it: ``fe_hz`` (electrical frequency, Hz) and
-    ``load_pct``, the torque over the rated torque (%), 1.5 p psi_m i_q with psi_m from the
-    nameplate (``psi_m_wb`` or the back-EMF constant), else from the rating (rated torque at rated
-    current, i_d = 0: then the q current over the rated current); where the profile has neither,
-    the input power over the rated power. ``input_power_pct`` is that input power (eq. 10's P_in)
-    in any case. One definition from the profile alone, so that a baseline and the running agent
-    read the same figure."""
-    return operating_point_of_means(float(np.mean(sig.power)), float(np.mean(sig.i_dq[1])),
-                                    float(np.mean(sig.omega_e)), profile)
+    ``load_pct``, the torque over the rated torque (%), 1.5 p (psi_m i_q + (L_d - L_q) i_d i_q)
+    with psi_m from the nameplate (``psi_m_wb`` or the back-EMF constant), else from the rating
+    (rated torque at rated current, i_d = 0: then the q current over the rated current), and the
+    reluctance term where the nameplate gives L_d and L_q (a salient machine under MTPA); where the
+    profile has neither, the input power over the rated power. ``input_power_pct`` is that input
+    power (eq. 10's P_in) in any case. One definition from the profile alone, so that a baseline and
+    the running agent read the same figure."""
+    i = sig.i_dq
+    return operating_point_of_means(float(np.mean(sig.power)), float(np.mean(i[1])), float(np.mean(sig.omega_e)),
+                                    profile, float(np.mean(i[0] * i[1])))
 
 
-def operating_point_of_means(power_w: float, i_q_a: float, omega_e: float, profile: DriveProfile) -> dict[str, float]:
-    """:func:`operating_point` from the record's mean input power (W), q current (A) and speed (rad/s)."""
+def operating_point_of_means(power_w: float, i_q_a: float, omega_e: float, profile: DriveProfile,
+                             i_dq_a2: float = 0.0) -> dict[str, float]:
+    """:func:`operating_point` from the record's mean input power (W), q current (A), speed (rad/s)
+    and mean i_d i_q (A^2)."""
     p_in = 100.0 * power_w / profile.motor.rated_power_w
-    m = profile.motor
-    psi = (profile.nameplate.psi_m(m.pole_pairs) if profile.nameplate else None) or m.psi_m_from_rating
-    load = p_in if psi is None else 100.0 * 1.5 * m.pole_pairs * psi * i_q_a / m.rated_torque_nm
+    m, plate = profile.motor, profile.nameplate
+    psi = (plate.psi_m(m.pole_pairs) if plate else None) or m.psi_m_from_rating
+    reluctance = (plate.ld_h - plate.lq_h) * i_dq_a2 if plate and plate.ld_h and plate.lq_h else 0.0
+    load = p_in if psi is None else 100.0 * 1.5 * m.pole_pairs * (psi * i_q_a + reluctance) / m.rated_torque_nm
     return {"fe_hz": omega_e / (2 * np.pi), "load_pct": load, "input_power_pct": p_in}
 
 

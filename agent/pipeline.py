@@ -102,6 +102,7 @@ class HopSums:
     power: float  #: sum of P_in, W
     omega: float  #: sum of omega_e, rad/s
     i_q: float
+    i_dq: float  #: sum of i_d i_q, A^2 (the reluctance torque)
     i_sq: float  #: sum of i_d^2 + i_q^2, A^2
     i_min: tuple[float, float]  #: (i_d, i_q) minima and maxima, A (NaN when a sample is not finite)
     i_max: tuple[float, float]
@@ -118,7 +119,8 @@ def hop_sums(sig: Signals) -> HopSums:
     i, w, p = sig.i_dq, sig.omega_e, sig.power
     mean = float(np.mean(sig.theta_e))
     dth = sig.theta_e - mean
-    return HopSums(sig.n, float(p.sum()), float(w.sum()), float(i[1].sum()), float(np.einsum("ij,ij->", i, i)),
+    return HopSums(sig.n, float(p.sum()), float(w.sum()), float(i[1].sum()), float(i[0] @ i[1]),
+                   float(np.einsum("ij,ij->", i, i)),
                    tuple(i.min(axis=1).tolist()), tuple(i.max(axis=1).tolist()), mean, float(dth @ dth),
                    float(dth @ w), float(dth @ p), float(w @ w), float(w @ p))
 
@@ -357,7 +359,7 @@ class DriveMonitor:
         mean = sum(h.n * h.theta_mean for h in hops) / n
         total = lambda f: sum(getattr(h, f) for h in hops)  # noqa: E731
         shift = [h.theta_mean - mean for h in hops]
-        return HopSums(n, total("power"), total("omega"), total("i_q"), total("i_sq"),
+        return HopSums(n, total("power"), total("omega"), total("i_q"), total("i_dq"), total("i_sq"),
                        tuple(np.min([h.i_min for h in hops], axis=0).tolist()),
                        tuple(np.max([h.i_max for h in hops], axis=0).tolist()), mean,
                        sum(h.theta_sq + h.n * d * d for h, d in zip(hops, shift)),
@@ -366,7 +368,8 @@ class DriveMonitor:
                        total("omega_sq"), total("omega_power"))
 
     def _operating_point(self, sums: HopSums) -> dict:
-        return operating_point_of_means(sums.power / sums.n, sums.i_q / sums.n, sums.omega / sums.n, self.profile)
+        return operating_point_of_means(sums.power / sums.n, sums.i_q / sums.n, sums.omega / sums.n, self.profile,
+                                        sums.i_dq / sums.n)
 
     def _not_running(self, sums: HopSums) -> str | None:
         lo, hi = np.array(sums.i_min), np.array(sums.i_max)

@@ -397,3 +397,25 @@ def test_every_effect_draws_on_many_drives():
         drive = draw_drive(seed)
         for effect in EFFECTS:
             assert draw_effect(drive, effect, seed), (seed, effect)
+
+
+def test_load_of_a_salient_mtpa_drive_counts_its_reluctance_torque():
+    """agent.identify.operating_point on a family drive (saliency 2, MTPA, i_d < 0) with its exact
+    nameplate: load_pct is the electromagnetic torque 1.5 p (psi_m i_q + (L_d - L_q) i_d i_q) over the
+    rated torque, within 1 %-point of the requested shaft torque plus the friction's; without L_d and
+    L_q on the nameplate the magnet torque alone reads low by the reluctance share."""
+    from agent.identify import operating_point, record_signals
+    from agent.profile import Nameplate
+
+    d = draw_drive(20001, current_reference="mtpa", **QUIET)
+    assert d.lq_h / d.ld_h > 1.5
+    rec, det = simulate_detail(d, {}, 80, 0.3, 1)
+    friction_pct = 100 * d.friction_nm_s * det["omega_e"].mean() / d.pole_pairs / d.rated_torque_nm
+    exact = Nameplate(psi_m_wb=d.psi_m_wb, ld_h=d.ld_h, lq_h=d.lq_h)
+    prof = dataclasses.replace(profile(d), nameplate=exact)
+    load = operating_point(record_signals(rec, prof), prof)["load_pct"]
+    assert load == pytest.approx(80 + friction_pct, abs=1.0)
+    magnet = dataclasses.replace(prof, nameplate=Nameplate(psi_m_wb=d.psi_m_wb))
+    reluctance = 100 * 1.5 * d.pole_pairs * (d.ld_h - d.lq_h) * np.mean(det["i_d"] * det["i_q"]) / d.rated_torque_nm
+    assert reluctance > 2.0
+    assert operating_point(record_signals(rec, magnet), magnet)["load_pct"] == pytest.approx(load - reluctance, abs=0.5)
