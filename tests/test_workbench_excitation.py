@@ -79,3 +79,40 @@ def test_with_the_nameplate_the_same_records_are_ranked(quiet_sets):
     assert "note" not in doc and len(doc["candidates"]) >= 7
     assert not [c["effect"] for c in doc["candidates"] if c["significant"]]
     assert doc["nrmse_control"] is not None and np.isfinite(doc["nrmse_control"])
+
+
+def test_a_base_beyond_any_machine_of_the_rating_is_named_not_ranked_against():
+    """implausible_base: per unit of the rated voltage and current, R_s,q above 0.5 or omega L above 3
+    is no machine of that rating (a 2.2 kW, 4-pole-pair drive: rated impedance ~5 ohm)."""
+    from agent.workbench.explain import R_MAX_PU, X_MAX_PU, implausible_base
+
+    prof = parse_profile(tomllib.loads(GEAR_PATH.read_text()))
+    motor = prof.motor
+    base = {"i_rated": 10.0, "v_rated": 100.0}
+    w = 2 * np.pi * motor.rated_speed_rpm / 60 * motor.pole_pairs
+    fine = {"Rs_d": 50.0, "Rs_q": 0.3, "Ld": 10.0, "Lq": 0.006}  # the d axis's free lumped values
+    assert implausible_base(fine, base, motor) is None
+    assert implausible_base({**fine, "Rs_q": 1.01 * R_MAX_PU * 10.0}, base, motor).count("Rs_q") == 1
+    text = implausible_base({**fine, "Lq": 1.01 * X_MAX_PU * 10.0 / w}, base, motor)
+    assert "Lq" in text and "Ld" not in text and "rated impedance 10 ohm" in text
+
+
+def test_a_drive_whose_records_pin_no_inductance_gets_that_answer():
+    """A family drive without an encoder (asynchronous current sampling, a speed loop, load ripple):
+    identify leaves L_d, L_q open and the control refit lands kilohenries away; explain ranks nothing
+    and names the nameplate or an encoder angle. With its nameplate the same records are ranked."""
+    from bench.family import draw_drive, profile as family_profile, simulate as family_simulate
+
+    drive = draw_drive(20023)
+    assert not drive.encoder and drive.current_sampling == "async"
+    for plate in (False, True):
+        prof = family_profile(drive, nameplate=plate, timing=True)
+        base = identify_baseline([family_simulate(drive, {}, 80.0, 1.0, seed=100 + j) for j in range(4)], prof,
+                                 window_s=0.5)
+        doc = explain(base, prepare([family_simulate(drive, {}, load, 1.0, seed=200 + j)
+                                     for j, load in enumerate((40.0, 60.0, 90.0, 100.0))], prof))
+        if plate:
+            assert doc["candidates"], doc.get("note")
+        else:
+            assert doc["candidates"] == [] and "base model is not identified" in doc["note"], doc.get("note")
+            assert "nameplate.lq_h" in doc["note"] and "encoder angle" in doc["note"]

@@ -182,6 +182,7 @@ def unidentified_note(eid: str, how: dict) -> str:
     why = ("the one-step regression pins it to no better than +-{:.0%} of a typical size".format(how["relative_se"])
            if how["stage"] == "one-step" else
            "it does not lower the error on the fit segments" if how["stage"].startswith("no gain") else
+           how["stage"] if how["stage"].startswith("its refit's base") else
            "every combination of its parameters at a typical size would be absorbed into the base parameters")
     return f"not identifiable from these records: {why}; revealed by {get_effect(eid).reveals}"
 
@@ -346,6 +347,20 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
             fits = [r if r.cost <= ctrl.cost else _zero_effect(ctrl, eid, r.at_bound.get(eid, False))
                     for eid, r in zip(candidates, fits)]
             h_ctrl = heldout(ctrl.model, preps)
+    # A control beyond any machine of the rating is no base to rank against, unless an effect's refit
+    # makes the base physical (a delay misreads L_q until it is modelled): only such effects are ranked.
+    wrong = implausible_base(ctrl.phys, base, baseline.profile.motor)
+    if wrong is not None:
+        if all(implausible_base(r.phys, base, baseline.profile.motor) for r in fits):
+            need = [k for k in ("Lq",) if k not in prior]
+            return _unranked(baseline, preps, before, h_ctrl, dyn, wrong + (
+                f"; the baseline does not pin {' and '.join(need)} either: give the nameplate ("
+                f"{', '.join(f'nameplate.{k.lower()}_h' for k in need)}) or records with an encoder angle"
+                if need else ""), t0)
+        for j, (eid, r) in enumerate(zip(candidates, fits)):
+            if implausible_base(r.phys, base, baseline.profile.motor) is not None:
+                fits[j] = _zero_effect(ctrl, eid, r.at_bound.get(eid, False))
+                fits[j].identifiable[eid] = (False, {"stage": "its refit's base is beyond the drive's rating as well"})
     rows, p_values, held = [], [], []
     for eid, r in zip(candidates, fits):
         h = heldout(r.model, preps)
@@ -370,7 +385,18 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
     level = ALPHA / max(len(p_values) - sum(reject), 1)  # what the next in Holm's order needs
     for row, rej in zip(rows, reject):
         row["significant"] = bool(rej and _claimable(row))
+    # Only the best of them is claimed on its own: a large effect is partly absorbed by every
+    # candidate, so the others must be significant on top of it (_forward), not against the control.
+    first = max((r for r in rows if r["significant"]), key=lambda r: r["explained_fraction"] or 0.0, default=None)
+    for row in rows:
+        if row["significant"] and row is not first:
+            row.update(significant=False, alone_significant=True)
     _forward(rows, dict(zip(candidates, fits)), preps, base, prior)
+    for row in rows:
+        if row.pop("alone_significant", False) and not row["significant"]:
+            row["note"] = "; ".join(filter(None, [row.get("note"), (
+                f"significant against the control alone, not on top of {first['effect']}: it takes up part of "
+                f"that effect's error")]))
     for row, h in zip(rows, held):
         if not row["significant"] and _claimable(row) and row["p_value"] < 1.0:
             row["note"] = "; ".join(filter(None, [row.get("note"), too_few_note(h_ctrl, h, level, row["p_value"])]))
@@ -400,6 +426,31 @@ def _document(baseline, preps: list[Prepared], before: dict, h_ctrl: dict | None
     if not before["stable"]:
         doc["note_before"] = before["note"]
     return doc
+
+
+#: a refit's base values beyond any machine of the drive's rating: R_s i_rated above this share of
+#: the rated voltage (copper losses of half the rated power), omega_rated L i_rated above this
+#: multiple of it (industrial machines: 0.1-1 per unit)
+R_MAX_PU, X_MAX_PU = 0.5, 3.0
+
+
+def implausible_base(phys: dict, base: dict, motor) -> str | None:
+    """What in a refit's q-axis values (``phys``: Rs_q ohm, Lq H) no machine of the drive's rating can
+    have (per unit of the rated voltage and current, ``base``: drive_base), or None. Such a control
+    is not a model of this drive but of what the records do not pin. (The d axis's R_s,d and L_d
+    carry almost no current under i_d = 0 and may sit anywhere, L_d at the one-step regression's
+    L_MAX_H where it sees no response, without harming the model.)"""
+    i, w = base.get("i_rated"), 2 * np.pi * motor.rated_speed_rpm / 60.0 * motor.pole_pairs
+    v = base.get("v_rated") or (base["psi_m"] * w if "psi_m" in base else None)
+    if not (i and v and w):
+        return None
+    bad = [f"Rs_q {phys['Rs_q']:.3g} ohm"] if phys.get("Rs_q") and phys["Rs_q"] * i > R_MAX_PU * v else []
+    bad += [f"Lq {phys['Lq']:.3g} H"] if phys.get("Lq") and w * phys["Lq"] * i > X_MAX_PU * v else []
+    if not bad:
+        return None
+    return (f"the base model is not identified by these records: its refit lands on {', '.join(bad)}, beyond any "
+            f"machine of this rating (rated impedance {v / i:.3g} ohm; R_s at most {R_MAX_PU:g}, omega L at most "
+            f"{X_MAX_PU:g} times it), so no effect is ranked against it")
 
 
 def _unranked(baseline, preps: list[Prepared], before: dict, h_ctrl: dict | None, dyn: dict, why: str,
