@@ -93,7 +93,7 @@ def judge(doc: dict, effect: str, true: dict, revealable: tuple[bool, str]) -> d
 
 def run_drive(args: tuple) -> dict:
     """Everything for one drive: its baseline, the null set and (``with_effects``) one set per effect."""
-    seed, seconds, with_effects, effects, timing = args
+    seed, seconds, with_effects, effects, timing, nameplate = args
     from agent.baseline import identify_baseline
     from agent.workbench.explain import explain
     from agent.workbench.fitting import prepare
@@ -101,8 +101,9 @@ def run_drive(args: tuple) -> dict:
 
     t0 = time.perf_counter()
     drive = draw_drive(seed)
-    prof = profile(drive, timing=timing)
-    out = {"seed": seed, "timing": timing, "drive": {k: v for k, v in asdict(drive).items() if k in ATTRIBUTES},
+    prof = profile(drive, nameplate=nameplate, timing=timing)
+    out = {"seed": seed, "timing": timing, "nameplate": nameplate,
+           "drive": {k: v for k, v in asdict(drive).items() if k in ATTRIBUTES},
            "saliency": drive.lq_h / drive.ld_h, "rows": []}
     out["drive"]["saliency"] = out["saliency"]
     try:
@@ -127,12 +128,13 @@ def run_drive(args: tuple) -> dict:
 
 
 def run(n_drives: int, n_null: int, seconds: float, jobs: int, effects, say=print, path: Path | None = None,
-        timing: bool = True) -> list:
+        timing: bool = True, nameplate: bool = False) -> list:
     """Run (or resume) the family: drives FIRST_SEED.. with effects for the first ``n_drives``,
     null sets for the first max(n_null, n_drives); results appended to ``path`` (JSON lines).
     ``timing``: each profile states the drive's voltage path (as the drive's documentation gives it),
-    else the workbench takes the voltage as reported."""
-    path = path or RESULTS / f"family_{seconds:g}s{'' if timing else '_reported'}.jsonl"
+    else the workbench takes the voltage as reported; ``nameplate``: each profile has the nameplate
+    (R_s, psi_m, L_d, L_q within 5 %)."""
+    path = path or RESULTS / f"family_{seconds:g}s{'' if timing else '_reported'}{'_nameplate' if nameplate else ''}.jsonl"
     path.parent.mkdir(parents=True, exist_ok=True)
     done = {}
     if path.exists():
@@ -140,7 +142,7 @@ def run(n_drives: int, n_null: int, seconds: float, jobs: int, effects, say=prin
             r = json.loads(line)
             done[r["seed"]] = r
     total = max(n_null, n_drives)
-    todo = [(FIRST_SEED + j, seconds, j < n_drives, tuple(effects), timing) for j in range(total)
+    todo = [(FIRST_SEED + j, seconds, j < n_drives, tuple(effects), timing, nameplate) for j in range(total)
             if FIRST_SEED + j not in done or (j < n_drives and not done[FIRST_SEED + j]["rows"]
                                                and "error" not in done[FIRST_SEED + j])]
     say(f"family: {total} drives ({n_drives} with {len(effects)} effects each), {len(done)} done before, "
@@ -309,6 +311,7 @@ def main(argv=None) -> int:
     p.add_argument("--effects", default="", help="comma-separated effect ids (default: the library's)")
     p.add_argument("--reported-voltage", action="store_true",
                    help="profiles without the drive's voltage path: the voltage taken as reported")
+    p.add_argument("--nameplate", action="store_true", help="profiles with the nameplate (R_s, psi_m, L_d, L_q within 5 %%)")
     p.add_argument("--short", action="store_true", help="`make test`'s form: 2 drives per effect, 0.6 s records")
     p.add_argument("--plot", default=str(ROOT / "docs" / "img" / "family_power.png"), help="power plot file")
     a = p.parse_args(argv)
@@ -323,15 +326,17 @@ def main(argv=None) -> int:
     n_drives, n_null, seconds = (2, 2, 0.6) if a.short else (a.drives, a.null, a.seconds)
     say = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
     path = RESULTS / (f"family_short.jsonl" if a.short else
-                      f"family_{seconds:g}s{'_reported' if a.reported_voltage else ''}.jsonl")
+                      f"family_{seconds:g}s{'_reported' if a.reported_voltage else ''}"
+                      f"{'_nameplate' if a.nameplate else ''}.jsonl")
     if a.short and path.exists():
         path.unlink()
     t0 = time.perf_counter()
-    results = run(n_drives, n_null, seconds, a.jobs, effects, say, path, timing=not a.reported_voltage)
+    results = run(n_drives, n_null, seconds, a.jobs, effects, say, path, timing=not a.reported_voltage,
+                  nameplate=a.nameplate)
     print(table(results, effects))
     print(f"\n{len(results)} drives, {time.perf_counter() - t0:.0f} s wall on {a.jobs} process(es), "
           f"{sum(r['seconds'] for r in results):.0f} s of drive work; results {path}")
-    if not a.short:
+    if not (a.short or a.nameplate or a.reported_voltage):  # the plot is of the documented workflow
         print(f"power plot: {power_plot(results, effects, Path(a.plot))}")
     return 0
 

@@ -15,7 +15,7 @@ from bench.bench_family import FIRST_SEED, run_drive
 def test_family_short_form_claims_nothing_false(full_form):
     n = 6 if full_form else 2
     for seed in range(FIRST_SEED, FIRST_SEED + n):
-        r = run_drive((seed, 0.6, True, tuple(EFFECTS), True))
+        r = run_drive((seed, 0.6, True, tuple(EFFECTS), True, False))
         assert "error" not in r, r.get("traceback")
         assert r["null"]["claims"] == [], (seed, r["drive"], r["null"])
         assert [row["effect"] for row in r["rows"]] == list(EFFECTS)
