@@ -182,7 +182,6 @@ def unidentified_note(eid: str, how: dict) -> str:
     why = ("the one-step regression pins it to no better than +-{:.0%} of a typical size".format(how["relative_se"])
            if how["stage"] == "one-step" else
            "it does not lower the error on the fit segments" if how["stage"].startswith("no gain") else
-           how["stage"] if how["stage"].startswith("its refit's base") else
            "every combination of its parameters at a typical size would be absorbed into the base parameters")
     return f"not identifiable from these records: {why}; revealed by {get_effect(eid).reveals}"
 
@@ -348,19 +347,15 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
                     for eid, r in zip(candidates, fits)]
             h_ctrl = heldout(ctrl.model, preps)
     # A control beyond any machine of the rating is no base to rank against, unless an effect's refit
-    # makes the base physical (a delay misreads L_q until it is modelled): only such effects are ranked.
+    # makes the base physical (a delay misreads L_q until it is modelled; the other effects of the
+    # records are ranked as well then: a second hidden effect cannot fix what the delay breaks).
     wrong = implausible_base(ctrl.phys, base, baseline.profile.motor)
-    if wrong is not None:
-        if all(implausible_base(r.phys, base, baseline.profile.motor) for r in fits):
-            need = [k for k in ("Lq",) if k not in prior]
-            return _unranked(baseline, preps, before, h_ctrl, dyn, wrong + (
-                f"; the baseline does not pin {' and '.join(need)} either: give the nameplate ("
-                f"{', '.join(f'nameplate.{k.lower()}_h' for k in need)}) or records with an encoder angle"
-                if need else ""), t0)
-        for j, (eid, r) in enumerate(zip(candidates, fits)):
-            if implausible_base(r.phys, base, baseline.profile.motor) is not None:
-                fits[j] = _zero_effect(ctrl, eid, r.at_bound.get(eid, False))
-                fits[j].identifiable[eid] = (False, {"stage": "its refit's base is beyond the drive's rating as well"})
+    if wrong is not None and all(implausible_base(r.phys, base, baseline.profile.motor) for r in fits):
+        need = [k for k in ("Lq",) if k not in prior]
+        return _unranked(baseline, preps, before, h_ctrl, dyn, wrong + (
+            f"; the baseline does not pin {' and '.join(need)} either: give the nameplate ("
+            f"{', '.join(f'nameplate.{k.lower()}_h' for k in need)}) or records with an encoder angle"
+            if need else ""), t0)
     rows, p_values, held = [], [], []
     for eid, r in zip(candidates, fits):
         h = heldout(r.model, preps)
