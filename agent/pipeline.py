@@ -51,7 +51,7 @@ from agent.library import ModelLibrary
 from agent.model import BASE_TERMS, Signals, input_power, regressors
 from agent.pll import PLL
 from agent.kernels import simulate_ltv
-from agent.spectrum import _window
+from agent.spectrum import amplitude_spectrum
 from agent.training import ACCEPT_FLAG, fault_reading
 from agent.profile import DriveProfile
 from protocols.base import Block, DriveStatus
@@ -149,18 +149,6 @@ def _ltv_step(a0: np.ndarray, a1: np.ndarray, w: float, u: np.ndarray, x: np.nda
                      (float(a0[1, 0]) + w * float(a1[1, 0])) * d + (float(a0[1, 1]) + w * float(a1[1, 1])) * q + uq])
 
 
-def _window_amplitude(x: np.ndarray, rate_hz: float, bins: int) -> np.ndarray:
-    """The first ``bins`` bins of :func:`agent.spectrum.amplitude_spectrum` (Hann) of one window
-    ``x``, the same values, without the magnitudes of the bins above."""
-    n = x.size
-    w = _window("hann", n)
-    amp = np.abs(np.fft.rfft(x * w)[:bins]) * (2.0 / w.sum())
-    amp[0] *= 0.5
-    if n % 2 == 0 and bins == n // 2 + 1:
-        amp[-1] *= 0.5
-    return amp
-
-
 @dataclass(frozen=True)
 class PipelineConfig:
     window_s: float = 2.0  #: residual-spectrum window, s (a baseline's thresholds are learned on it)
@@ -228,7 +216,7 @@ class DriveMonitor:
         self._builder: BaselineBuilder | None = None
         self._learn_name = ""
         self._learn_vet = None
-        self._reading: tuple[str, TrainingRecord] | None = None  #: the last assessed span (fault_reading)
+        self._reading: tuple[str, TrainingRecord] | None = None  #: the last assessed span (fault_evidence)
         self.alarms = AlarmLogic(config.alarm)
         self.reset_stream()
 
@@ -248,7 +236,6 @@ class DriveMonitor:
         self._open: _OpenWindows | None = None  # the windows whose residual is being simulated hop by hop
         self._q_info: dict[int, tuple] = {}  # hop end sample -> (model, q-axis X^T X, X^T y)
         self._hop_sums: dict[int, HopSums] = {}  # hop end sample -> its sums (the span's hops)
-        self._open = None
         self.pll.reset()
         self.last_input = time.monotonic()
         self.alarms.new_stream()
@@ -396,8 +383,8 @@ class DriveMonitor:
                 self._hop_residuals(name)
                 if not self._clean(self.n_win):
                     return None
-                self._spectra[key] = _window_amplitude(self._open.done.pop(end), self.rate,
-                                                       base.thresholds.freqs_hz.size)
+                self._spectra[key] = amplitude_spectrum(self._open.done.pop(end), self.rate,
+                                                        bins=base.thresholds.freqs_hz.size)[1]
             else:
                 part = self._signals(self.n_win, back, phases=bool(base.model.extra_d or base.model.extra_q))
                 if part is None:
@@ -479,13 +466,14 @@ class DriveMonitor:
         spectra = [self._window_spectrum(name, e) for e in ends]
         if any(s is None for s in spectra):
             return self._set(quality="bad_input", reason="NaN or saturated samples in a window")
+        spectra = np.array(spectra)
         point = np.array([self._ts_over_lq(name), self._torque(sums)[1]])
         freqs = base.thresholds.freqs_hz
-        y = feature_values(freqs, np.array(spectra), self.profile, op["fe_hz"], base.evidence.features, SEARCH_BINS)
+        y = feature_values(freqs, spectra, self.profile, op["fe_hz"], base.evidence.features, SEARCH_BINS)
         v = self.alarms.step(base.evidence, self.profile, y[-1], point, op["input_power_pct"], op["fe_hz"],
                              self.config.hop_s)
-        d = decide(base, freqs, np.array(spectra), point, op, self.drive)  # the paper's rule: peaks for display
-        self._reading = (name, TrainingRecord(f"{self.drive} (live)", op, None, np.array(spectra), point))
+        d = decide(base, freqs, spectra, point, op, self.drive)  # the paper's rule: peaks for display
+        self._reading = (name, TrainingRecord(f"{self.drive} (live)", op, None, spectra, point))
         return self._set(quality="good", model=name, state=self._hold(v.state), spectrum_state=v.spectrum_state,
                          cluster_state=v.cluster_state, fe_hz=op["fe_hz"], load_pct=op["load_pct"],
                          peaks=d.peaks, cluster_distance2=d.cluster["distance2"], reason=v.reason,
@@ -592,7 +580,7 @@ class DriveMonitor:
         self.on_event("learning", {"name": name, "phase": "parameters", "progress_pct": 0.0,
                                    "remaining_s": self.learn_remaining_s})
 
-    def fault_reading(self) -> str | None:
+    def fault_evidence(self) -> str | None:
         """What the last assessed span reads as a fault against the baseline that covers it: the
         training guard's rule (:func:`agent.training.fault_reading`, a sideband pair above centre + 5
         spread in both windows or a cluster point beyond the 99.99 % region), or a warning of the
@@ -609,10 +597,10 @@ class DriveMonitor:
     def relearn(self, name: str | None = None, accept_fault_evidence: bool = False) -> str | None:
         """Learn the present operating point again, replacing the baseline that covers it (the PLC's or
         an authorised zenoh relearn command, ``pmsm-agent learn --replace`` live). Refused while the
-        drive reads as faulty against that baseline (:meth:`fault_reading`): learning then would make
+        drive reads as faulty against that baseline (:meth:`fault_evidence`): learning then would make
         the fault the new normal. Returns the refusal (also journalled as ``learning_refused``) or
         None when learning started."""
-        reading = self.fault_reading()
+        reading = self.fault_evidence()
         if reading is not None and not accept_fault_evidence:
             why = (f"relearn refused: {reading}; learning now would learn the fault as healthy. Inspect the "
                    f"transmission; after a repair that changed what healthy looks like, relearn with "

@@ -164,6 +164,11 @@ def _build(cls, table: dict, section: str, source: str):
     return cls(**values)
 
 
+#: samples: the physical ranges of the stated voltage path (a DAQ filter lags up to 2 samples, a
+#: drive's command leads by its computation period; a dq hold after one period advances by 1.5)
+VOLTAGE_PATH_RANGES = {"voltage_delay_samples": (-1.5, 2.0), "voltage_advance_samples": (-1.0, 2.0)}
+
+
 def parse_profile(data: dict, source: str = "<profile>") -> DriveProfile:
     """Build a profile from a parsed TOML document; errors name ``source`` and the key path."""
     for key in data:
@@ -177,7 +182,7 @@ def parse_profile(data: dict, source: str = "<profile>") -> DriveProfile:
         parts[section] = _build(cls, table, section, source)
     if parts["sampling"].voltage_source not in ("measured", "reference"):
         raise InputError("key 'sampling.voltage_source' must be \"measured\" or \"reference\"", source=source)
-    for key, (lo, hi) in (("voltage_delay_samples", (-1.5, 2.0)), ("voltage_advance_samples", (-1.0, 2.0))):
+    for key, (lo, hi) in VOLTAGE_PATH_RANGES.items():
         value = getattr(parts["sampling"], key)
         if value is not None and not lo <= value <= hi:
             raise InputError(f"key 'sampling.{key}' = {value:g} is outside its physical range {lo:g}..{hi:g} samples",

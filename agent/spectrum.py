@@ -28,19 +28,20 @@ def _window(name: str, n: int) -> np.ndarray:
     return w
 
 
-def amplitude_spectrum(x, rate_hz: float, window: str = "hann") -> tuple[np.ndarray, np.ndarray]:
+def amplitude_spectrum(x, rate_hz: float, window: str = "hann", bins: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Single-sided amplitude spectrum of real ``x`` along its last axis (``(N,)`` or ``(m, N)``).
 
-    Returns ``(freqs_hz (N//2+1,), amplitude (..., N//2+1))`` in the units of ``x`` (peak, not rms).
+    Returns ``(freqs_hz (N//2+1,), amplitude (..., N//2+1))`` in the units of ``x`` (peak, not rms);
+    with ``bins``, only the first ``bins`` of them (the magnitudes above are not computed).
     """
     x = np.asarray(x, dtype=float)
     n = x.shape[-1]
     w = _window(window, n)
-    amp = np.abs(np.fft.rfft(x * w, axis=-1)) * (2.0 / w.sum())
+    amp = np.abs(np.fft.rfft(x * w, axis=-1)[..., :bins]) * (2.0 / w.sum())
     amp[..., 0] *= 0.5
-    if n % 2 == 0:
+    if n % 2 == 0 and amp.shape[-1] == n // 2 + 1:
         amp[..., -1] *= 0.5
-    return np.fft.rfftfreq(n, 1.0 / rate_hz), amp
+    return np.fft.rfftfreq(n, 1.0 / rate_hz)[:amp.shape[-1]], amp
 
 
 def peak_near(freqs, amplitude, f_hz, half_width: int = 1):

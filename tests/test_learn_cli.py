@@ -124,6 +124,20 @@ def test_a_live_relearn_of_a_drive_in_warning_is_refused_unless_accepted(tmp_pat
     assert rc == 0 and json.loads(out)["accepted_fault_evidence"] == [], err
 
 
+def test_a_live_relearn_that_never_reads_the_drive_says_so(tmp_path, capsys):
+    """``learn --replace`` from a live source that ends before its first span (3 s against a 4 s
+    span): the relearn never reads the drive with the baseline it replaces, and says that (not
+    "not enough healthy data"); the library is unchanged."""
+    rec = save_record(sim("healthy", 80.0, 3.0, 900), tmp_path / "h.npz")
+    cfg = config(tmp_path)
+    cfg.write_text(cfg.read_text().replace('kind = "simulated"', f'kind = "replay"\nfiles = ["{rec}"]\nspeedup = 0.0'))
+    rc, out, err = run(["learn", "--config", str(cfg), "--drive", "drive1", "--replace", "--max-seconds", "60"], capsys)
+    assert rc == 2 and len(err.strip().splitlines()) == 1, err
+    assert "no usable span to read the drive with the baseline it replaces" in err, err
+    assert "not enough healthy data" not in err
+    assert not list((tmp_path / "state" / "library").glob("*.json"))
+
+
 def test_learn_from_a_live_source_that_is_not_there(tmp_path, capsys):
     cfg = config(tmp_path)
     cfg.write_text(cfg.read_text().replace('kind = "simulated"', f'kind = "serial"\nport = "{tmp_path}/no-tty"'))

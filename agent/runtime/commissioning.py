@@ -158,7 +158,7 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
                         continue
                     reads = reads + 1 if st.quality == "good" else pcfg.persist_hops  # no_model: nothing to replace
                     if reads >= pcfg.persist_hops:
-                        reads, reading = None, monitor.fault_reading()
+                        reads, reading = None, monitor.fault_evidence()
                         if monitor.relearn(name, accept_fault_evidence) is not None:
                             break
                         findings += [f"live data ({reading})"] if reading else []
@@ -166,6 +166,10 @@ def learn(cfg, drive_name: str, files: list[str], name: str | None = None, repla
                     break
         finally:
             source.close()
+    if reads is not None:  # a live relearn that never got to read the drive with the baseline it replaces
+        last = f"; its last status: {seen[-1].quality}, {seen[-1].extra.get('reason')}" if seen else ""
+        raise InputError(f"learning not started for drive {drive.name}: no usable span to read the drive with the "
+                         f"baseline it replaces within --max-seconds{last}; the library is unchanged")
     refused = [d["reason"] for k, d in events if k == "learning_refused"]
     if refused:
         raise InputError(f"learning refused for drive {drive.name}: {refused[-1]}; the library is unchanged")

@@ -351,11 +351,9 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
     # records are ranked as well then: a second hidden effect cannot fix what the delay breaks).
     wrong = implausible_base(ctrl.phys, base, baseline.profile.motor)
     if wrong is not None and all(implausible_base(r.phys, base, baseline.profile.motor) for r in fits):
-        need = [k for k in ("Lq",) if k not in prior]
         return _unranked(baseline, preps, before, h_ctrl, dyn, wrong + (
-            f"; the baseline does not pin {' and '.join(need)} either: give the nameplate ("
-            f"{', '.join(f'nameplate.{k.lower()}_h' for k in need)}) or records with an encoder angle"
-            if need else ""), t0)
+            "; the baseline does not pin L_q either: give the nameplate (nameplate.lq_h) or records with an "
+            "encoder angle" if "Lq" not in prior else ""), t0)
     rows, p_values, held = [], [], []
     for eid, r in zip(candidates, fits):
         h = heldout(r.model, preps)

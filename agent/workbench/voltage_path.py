@@ -23,11 +23,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from agent.frames import CLARKE
+from agent.frames import ab0_to_abc, abc_to_ab0
 from agent.model import Signals
-
-D_RANGE = (-1.5, 2.0)  #: samples, the delay's physical range
-A_RANGE = (-1.0, 2.0)  #: samples of omega_e T_s, the advance's (a dq hold after one computation period: 1.5)
 
 
 def apply_path(sig: Signals, delay: float, advance: float) -> Signals:
@@ -39,12 +36,9 @@ def apply_path(sig: Signals, delay: float, advance: float) -> Signals:
         return sig
     n = sig.n
     k = np.arange(n, dtype=float)
-    v = np.stack([np.interp(k + delay, k, x) for x in sig.v_abc])  # V, v_reported(m + d)
-    ab = CLARKE[:2] @ v
-    z = (ab[0] + 1j * ab[1]) * np.exp(1j * advance * sig.omega_e * sig.ts)
-    zero = v.mean(axis=0)
-    s3 = np.sqrt(3.0) / 2.0
-    v_abc = np.stack((z.real, -0.5 * z.real + s3 * z.imag, -0.5 * z.real - s3 * z.imag)) + zero
+    ab0 = abc_to_ab0([np.interp(k + delay, k, x) for x in sig.v_abc])  # V, v_reported(m + d)
+    z = (ab0[0] + 1j * ab0[1]) * np.exp(1j * advance * sig.omega_e * sig.ts)
+    v_abc = ab0_to_abc(np.stack((z.real, z.imag, ab0[2])))
     return Signals.from_abc(v_abc, sig.i_abc, sig.theta_e, sig.omega_e, sig.ts, sig.pole_pairs)
 
 
