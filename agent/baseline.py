@@ -23,6 +23,7 @@ from agent.evidence import EvidenceStats, Feature, feature_values, make_features
 from agent.identify import (PREFILTER_HZ, FitResult, cluster_point, constrain, fit_record, operating_point,
                             record_signals, refine_output_error)
 from agent.physical import Estimate, Observation, estimate, observe
+from agent.voltage_path import corrected
 from agent.model import DQModel, Signals
 from agent.profile import DriveProfile
 from agent.records import Record
@@ -244,7 +245,7 @@ class BaselineBuilder:
         fit = fit_record(sig, self.profile, self.settings["form"] if m is None else m.form, extra,
                          prefilter_hz=self.settings["prefilter_hz"], plausible=False)
         self.fits.append(fit)
-        self.observations.append(observe(sig, encoder))
+        self.observations.append(observe(corrected(sig, self.profile), encoder))
         self.sources.append(source)
         return fit
 

@@ -48,13 +48,16 @@ class Motor:
 class Sampling:
     rate_hz: float
     voltage_source: str = "measured"  #: "measured" or "reference" (drive's voltage command)
-    #: the voltage path where the drive's timing is known (agent.workbench.voltage_path): the reported
+    #: the voltage path where the drive's timing is known (agent.voltage_path): the reported
     #: voltage is the applied one delayed by this many samples (signed: -1 for a drive reporting its
     #: command one computation period before applying it; a filter's lag > 0) ...
     voltage_delay_samples: float | None = None
     #: ... and turned back by this many samples of omega_e T_s (1.5 for a voltage held in dq, or an
     #: angle compensation, after one computation period)
     voltage_advance_samples: float | None = None
+    #: the current ADC's averaging window, samples, centred on the sample instant (0: a point sample
+    #: at the carrier's centre; 1: a sigma-delta or oversampling ADC averaging the whole interval)
+    current_window_samples: float | None = None
 
 
 @dataclass(frozen=True)
@@ -164,9 +167,11 @@ def _build(cls, table: dict, section: str, source: str):
     return cls(**values)
 
 
-#: samples: the physical ranges of the stated voltage path (a DAQ filter lags up to 2 samples, a
-#: drive's command leads by its computation period; a dq hold after one period advances by 1.5)
-VOLTAGE_PATH_RANGES = {"voltage_delay_samples": (-1.5, 2.0), "voltage_advance_samples": (-1.0, 2.0)}
+#: samples: the physical ranges of the stated measurement timing (a DAQ filter lags up to 2 samples, a
+#: drive's command leads by its computation period; a dq hold after one period advances by 1.5; a
+#: current ADC averages at most the interval it samples)
+VOLTAGE_PATH_RANGES = {"voltage_delay_samples": (-1.5, 2.0), "voltage_advance_samples": (-1.0, 2.0),
+                       "current_window_samples": (0.0, 1.0)}
 
 
 def parse_profile(data: dict, source: str = "<profile>") -> DriveProfile:

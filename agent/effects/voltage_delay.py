@@ -13,7 +13,7 @@ Degrees of freedom (linear, exact for zero-order-held signals with |d| <= 1):
   advance a (samples, -1..1): j omega_e T_s v(k), the rotation.
 Reported: delay_samples = d_lag - d_lead (headline), advance_samples = a, and their sum
 rotation_samples, the angle by which the applied voltage leads the reported one in units of
-omega_e T_s. Where the profile states the drive's own path (:mod:`agent.workbench.voltage_path`)
+omega_e T_s. Where the profile states the drive's own path (:mod:`agent.voltage_path`)
 the records' voltage is corrected with it before the fit, the parameters measure the change from it,
 and the report gives the totals (the stated path plus the change). At constant speed with a smooth
 voltage all three columns are nearly j omega_e T_s v: only the sum is pinned then, and delay and

@@ -113,8 +113,8 @@ class Prepared:
 def prepare(records: list[Record], profile: DriveProfile, max_fit_s: float = 0.5) -> list[Prepared]:
     """Records -> workbench signals: the record's encoder angle and speed, or the PLL's with the angle
     refined by :func:`follow_current`, less the PLL's lock-in; the voltage path the profile states
-    applied to the voltage (:mod:`agent.workbench.voltage_path`); the hold-out split."""
-    from agent.workbench.voltage_path import apply_path, stated_path
+    applied to the voltage (:mod:`agent.voltage_path`); the hold-out split."""
+    from agent.voltage_path import corrected, stated_path
 
     path = stated_path(profile)
 
@@ -127,8 +127,7 @@ def prepare(records: list[Record], profile: DriveProfile, max_fit_s: float = 0.5
             raise InputError(f"{idle}: nothing to compare a model with", source=rec.source)
         if rec.theta_e is None:
             sig = follow_current(sig, rec).slice(int(SETTLE_S * rate), sig.n)
-        if path is not None:
-            sig = apply_path(sig, *path)
+        sig = corrected(sig, profile)
         length = min(int(FIT_FRACTION * sig.n), int(max_fit_s * rate))
         start = fit_start(sig, length)
         meta = {**rec.meta, **({"voltage_path": tuple(path)} if path is not None else {})}  # what was applied

@@ -6,9 +6,11 @@ delay in samples (signed: -1 for a drive that reports its command and applies it
 period later, > 0 for a measured voltage through a filter), a the advance in samples of omega_e T_s
 (docs/workbench.md, "The voltage path", says which drives do what). It belongs to the healthy drive
 and its measurement chain, so the profile states it (``sampling.voltage_delay_samples``,
-``sampling.voltage_advance_samples``) and the workbench applies it to every record's voltage before
-it fits (:func:`agent.workbench.fitting.prepare`); the voltage_delay effect then measures the change
-from it and reports totals.
+``sampling.voltage_advance_samples``); identify's physical estimate (:meth:`agent.baseline.
+BaselineBuilder.add_fit`) and the workbench (:func:`agent.workbench.fitting.prepare`) read every
+record's voltage through it (:func:`corrected`); the voltage_delay effect then measures the change
+from it and reports totals. The lumped model the agent streams with keeps the voltage as reported:
+its coefficients absorb the path at the operating point, as they absorb everything else.
 
 Why the profile and not the records: healthy records in closed loop do not pin it. The current
 loop's broadband voltage is its answer to the current's measurement noise, so a regression over
@@ -49,3 +51,28 @@ def stated_path(profile) -> tuple[float, float] | None:
     if d is None and a is None:
         return None
     return float(d or 0.0), float(a or 0.0)
+
+
+def window_equivalent(sig: Signals, window: float) -> Signals:
+    """``sig`` with its voltage filtered by [w/8, 1 - w/4, w/8] (w = ``window``, samples): what a
+    current averaged over w T_s centred on each sample makes of the model's input.
+
+    Between samples the current is a straight line (T_s << L/R), so its average over the window is
+    y(k) = x(k) + w/8 (x(k+1) - 2 x(k) + x(k-1)), the same three-tap filter of the point samples x.
+    The model x(k+1) = A x(k) + B v(k) + c commutes with it (A, B constant over three samples), so the
+    averaged current obeys the model exactly with the filtered voltage: y(k+1) = A y(k) + B v_f(k) + c.
+    Read with the unfiltered voltage, a one-step regression takes the filter's -w/4 v(k) for a
+    smaller B (L_d 16-55 % high on family drives with w = 1)."""
+    if window == 0.0:
+        return sig
+    v = np.pad(sig.v_abc, ((0, 0), (1, 1)), mode="edge")
+    v_f = window / 8.0 * (v[:, :-2] + v[:, 2:]) + (1.0 - window / 4.0) * v[:, 1:-1]
+    return Signals.from_abc(v_f, sig.i_abc, sig.theta_e, sig.omega_e, sig.ts, sig.pole_pairs)
+
+
+def corrected(sig: Signals, profile) -> Signals:
+    """``sig`` with the voltage the machine saw by the path ``profile`` states, as its current
+    sensor's window sees it (:func:`window_equivalent`); unchanged where the profile states neither."""
+    path, window = stated_path(profile), profile.sampling.current_window_samples
+    sig = sig if path is None else apply_path(sig, *path)
+    return sig if not window else window_equivalent(sig, float(window))
