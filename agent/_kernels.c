@@ -5,7 +5,7 @@
  * agent/kernels.py check the shapes. It is built with -ffp-contract=off so that no multiply-add
  * is fused on targets with FMA: the results are the same on every target. The free-run simulation
  * follows its Python reference operation by operation (same order, no reassociation) and matches
- * it bit for bit; block_rows and ring_sums replace numpy expressions (tests/test_kernels.py compares
+ * it bit for bit (ltv_residuals runs the same recursion); block_rows and ring_sums replace numpy expressions (tests/test_kernels.py compares
  * them); the PLL replaces libm's per-sample cos, sin, hypot and atan2 by a rotating phasor
  * and series, within 1e-12 rad of the libm loop (tests/test_kernels.py).
  */
@@ -17,7 +17,7 @@
 #define PI 3.14159265358979323846 /* the double nearest pi, as math.pi */
 
 /* The interface's version (agent/kernels.py refuses a library built from another one). 2: the
- * PLL's state of 9 and its cos/sin output; 3: block_rows and ring_sums. */
+ * PLL's state of 9 and its cos/sin output; 3: block_rows, ring_sums and ltv_residuals. */
 int kernels_abi(void) { return 3; }
 
 /* cos and sin of a small angle x (|x| <= SMALL_ANGLE) by their Taylor series, short where |x| <=
@@ -282,6 +282,59 @@ int block_rows(const double *i_abc, const double *v_abc, ptrdiff_t n, const doub
     if (angle == NULL)
         pll_save(&p, pll_state);
     return bad;
+}
+
+#define LTV_RUNS 8 /* the most runs ltv_residuals takes at once */
+
+/* The phase-a residuals of m free runs of x(k+1) = (A0 + omega(k) A1) x(k) + u(k) over the same n
+ * samples (agent/pipeline.py's open windows), each from its own state:
+ * r_j(k) = (i_d(k) - x_d(k)) cos theta(k) - (i_q(k) - x_q(k)) sin theta(k).
+ *
+ * a0, a1 (2, 2); omega (n,); u (2, n); i_dq (2, n): the measured currents; theta (n,): the angle
+ * (rad, unwrapped). x (2, m), read and updated in place: each run's state at the first sample, then
+ * after the last (the step from sample n - 1), so that a stream cut into blocks continues exactly.
+ * r (m, n), written. m <= LTV_RUNS. The recursion is simulate_ltv's, operation by operation (the same x); cos
+ * and sin of theta come from a phasor rotated by the angle's steps (exact every RESYNC samples),
+ * within 1e-14 of libm's.
+ */
+void ltv_residuals(const double *a0, const double *a1, const double *omega, const double *u, const double *i_dq,
+                   const double *theta, ptrdiff_t n, ptrdiff_t m, double *x, double *r)
+{
+    const double a0_dd = a0[0], a0_dq = a0[1], a0_qd = a0[2], a0_qq = a0[3];
+    const double a1_dd = a1[0], a1_dq = a1[1], a1_qd = a1[2], a1_qq = a1[3];
+    const double *ud = u, *uq = u + n, *id = i_dq, *iq = i_dq + n;
+    double d[LTV_RUNS], q[LTV_RUNS], c = 0.0, s = 0.0;
+    if (m > LTV_RUNS)
+        return; /* the wrapper refuses it */
+    for (ptrdiff_t j = 0; j < m; ++j) {
+        d[j] = x[j];
+        q[j] = x[m + j];
+    }
+    for (ptrdiff_t k = 0; k < n; ++k) {
+        const double step = k > 0 ? theta[k] - theta[k - 1] : 0.0;
+        if (k % RESYNC == 0 || !(fabs(step) <= SMALL_ANGLE)) {
+            c = cos(theta[k]);
+            s = sin(theta[k]);
+        } else {
+            double cr, sr;
+            small_cos_sin(step, &cr, &sr);
+            const double c_next = c * cr - s * sr;
+            s = s * cr + c * sr;
+            c = c_next;
+        }
+        const double w = omega[k], b_dd = a0_dd + w * a1_dd, b_dq = a0_dq + w * a1_dq;
+        const double b_qd = a0_qd + w * a1_qd, b_qq = a0_qq + w * a1_qq;
+        for (ptrdiff_t j = 0; j < m; ++j) {
+            r[j * n + k] = (id[k] - d[j]) * c - (iq[k] - q[j]) * s;
+            const double d_next = b_dd * d[j] + b_dq * q[j] + ud[k];
+            q[j] = b_qd * d[j] + b_qq * q[j] + uq[k];
+            d[j] = d_next;
+        }
+    }
+    for (ptrdiff_t j = 0; j < m; ++j) {
+        x[j] = d[j];
+        x[m + j] = q[j];
+    }
 }
 
 /* Sums over n samples of the signal ring from column start (wrapping at n_ring), for the span's

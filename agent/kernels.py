@@ -1,7 +1,7 @@
 """The per-sample recursions of the agent's runtime path, in C (``agent/_kernels.c``) through ctypes.
 
 The PLL loop, the dq model's free-run simulation and the streaming pipeline's per-block pass
-(:func:`block_rows`, :func:`ring_sums`) are the sample-by-sample loops the running agent needs. They are plain C so that the agent never imports numba: numba and its LLVM
+(:func:`block_rows`, :func:`ring_sums`, :func:`ltv_residuals`) are the sample-by-sample loops the running agent needs. They are plain C so that the agent never imports numba: numba and its LLVM
 cost about 120 MB of resident memory, most of the agent's 150 MB budget. The shared object is
 built in place by ``make setup`` (``pip install -e .``, a setuptools extension declared in
 pyproject.toml) and sits next to this file. The development tools (``agent.simulator``,
@@ -46,6 +46,8 @@ _lib.pll_run.restype = None
 _lib.pll_run.argtypes = [_IN, ctypes.c_ssize_t, _IN, _IN, _OUT, _OUT, _OUT, _OUT]
 _lib.simulate_ltv.restype = None
 _lib.simulate_ltv.argtypes = [_IN, _IN, _IN, _IN, _IN, ctypes.c_ssize_t, _OUT]
+_lib.ltv_residuals.restype = None
+_lib.ltv_residuals.argtypes = [_IN, _IN, _IN, _IN, _IN, _IN, ctypes.c_ssize_t, ctypes.c_ssize_t, _OUT, _OUT]
 _lib.block_rows.restype = ctypes.c_int
 _lib.block_rows.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_ssize_t, ctypes.c_void_p, ctypes.c_void_p,
                             ctypes.c_double, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
@@ -57,6 +59,7 @@ _lib.ring_sums.argtypes = [ctypes.c_void_p, ctypes.c_int, ctypes.c_ssize_t, _IN,
 #: The rows :func:`block_rows` writes (agent.pipeline's signal ring).
 ROWS = ("va", "vb", "vc", "ia", "ib", "ic", "omega_e", "i_d", "i_q", "v_d", "v_q", "p_in")
 
+LTV_RUNS = 8  #: the most free runs :func:`ltv_residuals` takes at once (agent/_kernels.c's)
 #: Length of the PLL's parameter vector and of its state vector.
 PLL_N_PAR, PLL_N_STATE = 10, 9
 
@@ -102,6 +105,24 @@ def simulate_ltv(a0, a1, omega, u, x0) -> np.ndarray:
     _lib.simulate_ltv(_f64(a0, (2, 2), "a0"), _f64(a1, (2, 2), "a1"), w, _f64(u, (2, n), "u"),
                       _f64(x0, (2,), "x0"), n, x)
     return x
+
+
+def ltv_residuals(a0, a1, omega, u, i_dq, theta, x0) -> tuple[np.ndarray, np.ndarray]:
+    """The phase-a residuals of m free runs of :func:`simulate_ltv` over the same samples, each
+    from its own state ``x0`` ``(2, m)``: ``(i_d - x_d) cos(theta) - (i_q - x_q) sin(theta)``,
+    ``(m, N)`` (units of ``i_dq``; m <= :data:`LTV_RUNS`), and the states after the last sample ``(2, m)`` (a stream cut
+    into blocks continues exactly). ``omega`` ``(N,)``; ``u``, ``i_dq`` ``(2, N)``; ``theta``
+    ``(N,)``, rad."""
+    w = _f64(omega, (None,), "omega")
+    n = w.size
+    x = np.array(x0, dtype=np.float64)  # a copy: the kernel updates the states in place
+    m = x.shape[1] if x.ndim == 2 else 0
+    if m > LTV_RUNS:
+        raise ValueError(f"ltv_residuals: at most {LTV_RUNS} runs at once, got {m}")
+    r = np.empty((m, n))
+    _lib.ltv_residuals(_f64(a0, (2, 2), "a0"), _f64(a1, (2, 2), "a1"), w, _f64(u, (2, n), "u"),
+                       _f64(i_dq, (2, n), "i_dq"), _f64(theta, (n,), "theta"), n, m, _f64(x, (2, m), "x0"), r)
+    return r, x
 
 
 def _rows_dtype(a: np.ndarray, shape: tuple[int, int], name: str) -> int:

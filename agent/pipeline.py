@@ -50,7 +50,7 @@ from agent.sanity import not_running_of
 from agent.library import ModelLibrary
 from agent.model import BASE_TERMS, Signals, regressors
 from agent.pll import PLL
-from agent.kernels import ROWS, block_rows, ring_sums, simulate_ltv
+from agent.kernels import ROWS, block_rows, ltv_residuals, ring_sums
 from agent.spectrum import amplitude_spectrum
 from agent.training import ACCEPT_FLAG, fault_reading
 from agent.profile import DriveProfile
@@ -136,13 +136,6 @@ def _per_sample(model) -> bool:
     """True when the model's free run is a per-sample recursion of per-sample inputs, so that a
     window's simulation can be split at hop boundaries (Euler, no effect terms)."""
     return model.discretisation == "euler" and not model.extra_d and not model.extra_q
-
-
-def _ltv_step(a0: np.ndarray, a1: np.ndarray, w: float, u: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """One step of :func:`agent.kernels.simulate_ltv`, operation by operation as the C loop."""
-    w, ud, uq, d, q = float(w), float(u[0]), float(u[1]), float(x[0]), float(x[1])
-    return np.array([(float(a0[0, 0]) + w * float(a1[0, 0])) * d + (float(a0[0, 1]) + w * float(a1[0, 1])) * q + ud,
-                     (float(a0[1, 0]) + w * float(a1[1, 0])) * d + (float(a0[1, 1]) + w * float(a1[1, 1])) * q + uq])
 
 
 @dataclass(frozen=True)
@@ -390,9 +383,10 @@ class DriveMonitor:
     def _hop_residuals(self, name: str) -> None:
         """Bring the open windows' residuals up to the newest sample: each hop since the last call
         is read out once and simulated from the state each open window reached (and from the
-        measured current for the window that starts on it), which continues every window's
-        free run exactly where a simulation of the whole window would be (the same C recursion,
-        split, the state carried in float64); the residual of a hop is kept in float32 until its
+        measured current for the window that starts on it; :func:`agent.kernels.ltv_residuals`,
+        every open window in one call), which continues every window's free run exactly where a
+        simulation of the whole window would be (the same C recursion, split, the state carried in
+        float64); the residual of a hop is kept in float32 until its
         window completes (:func:`residual_bytes`); a window that completes leaves its phase-a
         residual in ``done``."""
         ow, model = self._open, self.library.baselines[name].model
@@ -401,14 +395,12 @@ class DriveMonitor:
         a0, a1 = model.state_matrices()
         for hop_end in range(ow.upto + self.n_hop, self._samples + 1, self.n_hop):
             part = self._signals(self.n_hop, self._samples - hop_end, checked=False, phases=False)
-            c, s = cos_sin32(part.theta_e)
-            u, w = model.exogenous(part), part.omega_e
             ow.windows.append([hop_end - self.n_hop, [], part.i_dq[:, 0]])
-            for win in ow.windows:
-                x = simulate_ltv(a0, a1, w, u, win[2])
-                r_d, r_q = part.i_dq - x
-                win[1].append(r_d * c - r_q * s)
-                win[2] = _ltv_step(a0, a1, w[-1], u[:, -1], x[:, -1])
+            r, x = ltv_residuals(a0, a1, part.omega_e, model.exogenous(part), part.i_dq, part.theta_e,
+                                 np.column_stack([win[2] for win in ow.windows]))
+            for j, win in enumerate(ow.windows):
+                win[1].append(r[j])
+                win[2] = x[:, j]
             for win in [v for v in ow.windows if len(v[1]) * self.n_hop == self.n_win]:
                 ow.windows.remove(win)
                 ow.done = {hop_end: np.concatenate(win[1])}

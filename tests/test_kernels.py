@@ -24,7 +24,7 @@ import pytest
 
 from agent import kernels
 from agent.frames import CLARKE, park
-from agent.kernels import block_rows, pll_run, ring_sums, simulate_ltv
+from agent.kernels import block_rows, ltv_residuals, pll_run, ring_sums, simulate_ltv
 from agent.pll import PLL
 
 FS = 25_000.0
@@ -242,6 +242,32 @@ def test_ring_sums_equal_numpy_across_the_wrap(dtype):
     assert np.isnan(got[[2, 3, 4, 6, 8]]).all() and np.isfinite(got[[0, 1, 5, 7, 9]]).all()
     with pytest.raises(ValueError, match="within"):
         ring_sums(ring, theta, start, m + 1)
+
+
+def test_ltv_residuals_equal_simulate_ltv_and_numpy_across_cuts():
+    """Three runs from their own states over one stream: the same free run as simulate_ltv (bit
+    for bit), the residual rotated at libm's cos and sin of the angle, and cut into blocks (the
+    states carried) the same again."""
+    rng = np.random.default_rng(12)
+    n = 5000
+    a0 = np.array([[0.98, 0.02], [-0.02, 0.98]]) + 1e-3 * rng.standard_normal((2, 2))
+    a1 = 1e-5 * rng.standard_normal((2, 2))
+    omega, u, i_dq = rng.uniform(500.0, 700.0, n), rng.standard_normal((2, n)), rng.standard_normal((2, n))
+    theta = 7e5 + np.cumsum(omega) / FS
+    theta[3000:] += 1.0  # a jump beyond the phasor's small angle: exact again there
+    x0 = rng.standard_normal((2, 3))
+    r, x = ltv_residuals(a0, a1, omega, u, i_dq, theta, x0)
+    for j in range(3):
+        sim = simulate_ltv(a0, a1, np.append(omega, 0.0), np.append(u, np.zeros((2, 1)), axis=1), x0[:, j])
+        np.testing.assert_array_equal(x[:, j], sim[:, -1])  # the state after the last sample
+        want = (i_dq[0] - sim[0, :-1]) * np.cos(theta) - (i_dq[1] - sim[1, :-1]) * np.sin(theta)
+        np.testing.assert_allclose(r[j], want, rtol=0, atol=1e-12 * np.abs(want).max())
+    r1, x1 = ltv_residuals(a0, a1, omega[:1234], u[:, :1234], i_dq[:, :1234], theta[:1234], x0)
+    r2, x2 = ltv_residuals(a0, a1, omega[1234:], u[:, 1234:], i_dq[:, 1234:], theta[1234:], x1)
+    np.testing.assert_array_equal(x2, x)
+    np.testing.assert_allclose(np.hstack((r1, r2)), r, rtol=0, atol=1e-12 * np.abs(r).max())
+    with pytest.raises(ValueError, match="at most"):
+        ltv_residuals(a0, a1, omega, u, i_dq, theta, np.zeros((2, kernels.LTV_RUNS + 1)))
 
 
 @pytest.mark.parametrize("bad", ["x_abc", "u", "par"])
