@@ -348,9 +348,6 @@ void ltv_residuals(const double *a0, const double *a1, const double *omega, cons
 void ring_sums(const void *ring, int f32, ptrdiff_t n_ring, const double *theta_ring, ptrdiff_t start,
                ptrdiff_t n, double *out)
 {
-    const float *r32 = (const float *)ring;
-    const double *r64 = (const double *)ring;
-#define RING(row, j) (f32 ? (double)r32[(row) * n_ring + (j)] : r64[(row) * n_ring + (j)])
     double mean = 0.0;
     for (ptrdiff_t k = 0, j = start; k < n; ++k, j = j + 1 == n_ring ? 0 : j + 1)
         mean += theta_ring[j] - theta_ring[start];
@@ -358,27 +355,36 @@ void ring_sums(const void *ring, int f32, ptrdiff_t n_ring, const double *theta_
     double p = 0.0, w = 0.0, iq = 0.0, idq = 0.0, isq = 0.0, tt = 0.0, tw = 0.0, tp = 0.0, ww = 0.0, wp = 0.0;
     double lo_d = INFINITY, lo_q = INFINITY, hi_d = -INFINITY, hi_q = -INFINITY;
     int nan_d = 0, nan_q = 0;
-    for (ptrdiff_t k = 0, j = start; k < n; ++k, j = j + 1 == n_ring ? 0 : j + 1) {
-        const double om = RING(6, j), i_d = RING(7, j), i_q = RING(8, j), pw = RING(11, j);
-        const double dth = theta_ring[j] - mean;
-        p += pw;
-        w += om;
-        iq += i_q;
-        idq += i_d * i_q;
-        isq += i_d * i_d + i_q * i_q;
-        tt += dth * dth;
-        tw += dth * om;
-        tp += dth * pw;
-        ww += om * om;
-        wp += om * pw;
-        nan_d |= isnan(i_d);
-        nan_q |= isnan(i_q);
-        lo_d = i_d < lo_d ? i_d : lo_d;
-        hi_d = i_d > hi_d ? i_d : hi_d;
-        lo_q = i_q < lo_q ? i_q : lo_q;
-        hi_q = i_q > hi_q ? i_q : hi_q;
+    /* one loop per storage type (no test of it per sample) */
+#define SUM_RING(r)                                                                                  \
+    for (ptrdiff_t k = 0, j = start; k < n; ++k, j = j + 1 == n_ring ? 0 : j + 1) {                  \
+        const double om = r[6 * n_ring + j], i_d = r[7 * n_ring + j], i_q = r[8 * n_ring + j];       \
+        const double pw = r[11 * n_ring + j], dth = theta_ring[j] - mean;                            \
+        p += pw;                                                                                     \
+        w += om;                                                                                     \
+        iq += i_q;                                                                                   \
+        idq += i_d * i_q;                                                                            \
+        isq += i_d * i_d + i_q * i_q;                                                                \
+        tt += dth * dth;                                                                             \
+        tw += dth * om;                                                                              \
+        tp += dth * pw;                                                                              \
+        ww += om * om;                                                                               \
+        wp += om * pw;                                                                               \
+        nan_d |= isnan(i_d);                                                                         \
+        nan_q |= isnan(i_q);                                                                         \
+        lo_d = i_d < lo_d ? i_d : lo_d;                                                              \
+        hi_d = i_d > hi_d ? i_d : hi_d;                                                              \
+        lo_q = i_q < lo_q ? i_q : lo_q;                                                              \
+        hi_q = i_q > hi_q ? i_q : hi_q;                                                              \
     }
-#undef RING
+    if (f32) {
+        const float *r32 = (const float *)ring;
+        SUM_RING(r32)
+    } else {
+        const double *r64 = (const double *)ring;
+        SUM_RING(r64)
+    }
+#undef SUM_RING
     const double sums[15] = {p, w, iq, idq, isq, nan_d ? NAN : lo_d, nan_q ? NAN : lo_q,
                              nan_d ? NAN : hi_d, nan_q ? NAN : hi_q, mean, tt, tw, tp, ww, wp};
     for (int j = 0; j < 15; ++j)

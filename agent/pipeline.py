@@ -48,7 +48,7 @@ from agent.frames import CLARKE, cos_sin32
 from agent.identify import cluster_point, operating_point_of_means, solve_torque
 from agent.sanity import not_running_of
 from agent.library import ModelLibrary
-from agent.model import BASE_TERMS, Signals, regressors
+from agent.model import BASE_TERMS, Signals
 from agent.pll import PLL
 from agent.kernels import ROWS, block_rows, ltv_residuals, ring_sums
 from agent.spectrum import amplitude_spectrum
@@ -494,8 +494,8 @@ class DriveMonitor:
                 back = self._samples - end
                 n = self.n_hop + int(back + self.n_hop + 1 <= self._filled)  # the sample before, if still held
                 part = self._signals(n, back, phases=bool(m.extra_q))
-                x = regressors(terms, part)[:-1]
-                self._q_info[end] = (name, x.T @ x, x.T @ part.i_dq[1, 1:])
+                x = np.array([t.column(part) for t in terms])[:, :-1]  # regressors(), transposed: rows
+                self._q_info[end] = (name, x @ x.T, x @ part.i_dq[1, 1:])
         for old in [k for k in self._q_info if k not in ends]:
             del self._q_info[old]
         info = sum(self._q_info[e][1] for e in ends) + np.eye(len(terms)) * 1e-6
