@@ -5,18 +5,20 @@
  * agent/kernels.py check the shapes. It is built with -ffp-contract=off so that no multiply-add
  * is fused on targets with FMA: the results are the same on every target. The free-run simulation
  * follows its Python reference operation by operation (same order, no reassociation) and matches
- * it bit for bit; the PLL replaces libm's per-sample cos, sin, hypot and atan2 by a rotating phasor
+ * it bit for bit (ltv_residuals runs the same recursion); block_rows and ring_sums replace numpy expressions (tests/test_kernels.py compares
+ * them); the PLL replaces libm's per-sample cos, sin, hypot and atan2 by a rotating phasor
  * and series, within 1e-12 rad of the libm loop (tests/test_kernels.py).
  */
 
+#include <float.h>
 #include <math.h>
 #include <stddef.h>
 
 #define PI 3.14159265358979323846 /* the double nearest pi, as math.pi */
 
 /* The interface's version (agent/kernels.py refuses a library built from another one). 2: the
- * PLL's state of 9 and its cos/sin output. */
-int kernels_abi(void) { return 2; }
+ * PLL's state of 9 and its cos/sin output; 3: block_rows, ring_sums and ltv_residuals. */
+int kernels_abi(void) { return 3; }
 
 /* cos and sin of a small angle x (|x| <= SMALL_ANGLE) by their Taylor series, short where |x| <=
  * 1/16 (to x^8 / x^9) and to x^14 / x^13 above: the first term left out is below 1e-19 there,
@@ -57,18 +59,14 @@ static inline double phase_error(double d, double q)
  * more than RESYNC steps. */
 #define RESYNC 64
 
-/* SRF-PLL with gear shifting (agent/pll.py) over n samples of x_abc (3, n).
+/* SRF-PLL with gear shifting (agent/pll.py): parameters and state, in locals while a loop runs.
  *
- * clarke (2, 3): the first two rows of the amplitude-invariant Clarke matrix.
  * par (10,): Ts, wn_track, wn_acq, taper per sample, lock-filter coefficient, lock threshold,
  *            unlock threshold, lock samples, min amplitude, damping zeta.
- * state (9,), read and updated in place: angle, integrator omega, filtered error,
- *            samples below threshold, locked 0/1, natural frequency wn, the angle's phasor
- *            (cos, sin) and the steps it has been rotated since it was exact (0: take it from the
- *            angle; a new state has 0), so that a stream cut into blocks gives the same output.
- * theta, omega (n,), written: the angle used for sample k and the integrator after it.
- * cs (4, n), written: cos and sin of theta(k) and of theta(k) + Ts omega(k) / 2 (the mid angle of
- *            the sample's interval, at which a zero-order-held voltage is rotated).
+ * state (9,): angle, integrator omega, filtered error, samples below threshold, locked 0/1,
+ *            natural frequency wn, the angle's phasor (cos, sin) and the steps it has been rotated
+ *            since it was exact (0: take it from the angle; a new state has 0), so that a stream
+ *            cut into blocks gives the same output.
  *
  * Per sample the loop needs the angle's cos and sin and the phase error; instead of libm's cos,
  * sin, hypot and atan2 (about 100 ns a sample) it rotates a phasor by the angle's step (a small
@@ -76,89 +74,110 @@ static inline double phase_error(double d, double q)
  * atan series near lock. Every one of these equals the libm expression to an ulp or two; the
  * output stays within 1e-12 rad of the per-sample libm loop (tests/test_kernels.py).
  */
+struct pll {
+    double ts, wn_trk, wn_acq, taper, a_ef, thr, thr_off, n_lock, amin2, zeta, c_aa, c_ab, c_ac, c_ba, c_bb, c_bc;
+    double th, om, ef, cnt, lck, wn, c, s, steps;
+};
+
+static struct pll pll_load(const double *clarke, const double *par, const double *state)
+{
+    struct pll p = {par[0], par[1], par[2], par[3], par[4], par[5], par[6], par[7],
+                    par[8] > 0.0 ? par[8] * par[8] : 0.0, par[9],
+                    clarke[0], clarke[1], clarke[2], clarke[3], clarke[4], clarke[5],
+                    state[0], state[1], state[2], state[3], state[4], state[5], state[6], state[7], state[8]};
+    if (p.steps == 0.0) {
+        p.c = cos(p.th);
+        p.s = sin(p.th);
+    }
+    return p;
+}
+
+static void pll_save(const struct pll *p, double *state)
+{
+    const double st[9] = {p->th, p->om, p->ef, p->cnt, p->lck, p->wn, p->c, p->s, p->steps};
+    for (int j = 0; j < 9; ++j)
+        state[j] = st[j];
+}
+
+/* One sample (xa, xb, xc) through the loop: out (6,) = the angle used for it, the integrator after
+ * it, cos and sin of the angle and of the mid angle angle + Ts omega / 2 (at which a
+ * zero-order-held voltage is rotated). Inlined into the loops, p stays in registers. */
+static inline __attribute__((always_inline)) void pll_step(struct pll *p, double xa, double xb, double xc,
+                                                           double *out)
+{
+    const double al = p->c_aa * xa + p->c_ab * xb + p->c_ac * xc;
+    const double be = p->c_ba * xa + p->c_bb * xb + p->c_bc * xc;
+    const double c = p->c, s = p->s, d = al * c + be * s, q = -al * s + be * c;
+    double e = 0.0;
+    if (isfinite(d) && isfinite(q) && d * d + q * q > p->amin2) {
+        e = phase_error(d, q); /* exact phase error of the +q alignment, amplitude-free */
+        p->ef += p->a_ef * (e - p->ef);
+        if (p->lck == 0.0) {
+            p->cnt = fabs(p->ef) < p->thr ? p->cnt + 1.0 : 0.0;
+            p->lck = p->cnt >= p->n_lock ? 1.0 : 0.0;
+        } else if (fabs(p->ef) > p->thr_off) {
+            p->lck = 0.0;
+            p->cnt = 0.0;
+            p->wn = p->wn_acq;
+        }
+    }
+    if (p->lck != 0.0 && p->wn > p->wn_trk) {
+        const double tapered = p->wn * p->taper;
+        p->wn = p->wn_trk > tapered ? p->wn_trk : tapered; /* Python's max(tapered, wn_trk) */
+    }
+    p->om += p->wn * p->wn * p->ts * e;
+    out[0] = p->th;
+    out[1] = p->om;
+    out[2] = c;
+    out[3] = s;
+    const double half = 0.5 * p->ts * p->om;
+    if (fabs(half) <= SMALL_ANGLE) {
+        double ch, sh;
+        small_cos_sin(half, &ch, &sh);
+        out[4] = c * ch - s * sh;
+        out[5] = s * ch + c * sh;
+    } else {
+        out[4] = cos(p->th + half);
+        out[5] = sin(p->th + half);
+    }
+    const double step = p->ts * (p->om + 2.0 * p->zeta * p->wn * e);
+    p->th += step;
+    const double turns = (p->th + PI) / (2.0 * PI);
+    if (turns < 0.0 || turns >= 1.0) /* floor(turns) is 0 in between: no libm call */
+        p->th -= 2.0 * PI * floor(turns);
+    p->steps += 1.0;
+    if (p->steps >= RESYNC || !(fabs(step) <= SMALL_ANGLE)) {
+        p->steps = 0.0;
+        p->c = cos(p->th);
+        p->s = sin(p->th);
+    } else {
+        double cr, sr;
+        small_cos_sin(step, &cr, &sr);
+        p->c = c * cr - s * sr;
+        p->s = s * cr + c * sr;
+    }
+}
+
+/* The PLL over n samples of x_abc (3, n).
+ *
+ * clarke (2, 3): the first two rows of the amplitude-invariant Clarke matrix. par, state: struct
+ * pll's (state read and updated in place).
+ * theta, omega (n,), written: the angle used for sample k and the integrator after it.
+ * cs (4, n), written: cos and sin of theta(k) and of theta(k) + Ts omega(k) / 2.
+ */
 void pll_run(const double *x_abc, ptrdiff_t n, const double *clarke, const double *par,
              double *state, double *theta, double *omega, double *cs)
 {
-    const double ts = par[0], wn_trk = par[1], wn_acq = par[2], taper = par[3], a_ef = par[4];
-    const double thr = par[5], thr_off = par[6], n_lock = par[7], amin = par[8], zeta = par[9];
-    double th = state[0], om = state[1], ef = state[2], cnt = state[3], lck = state[4], wn = state[5];
-    /* locals, so the stores to theta/omega (which might alias) force no reloads */
-    const double c_aa = clarke[0], c_ab = clarke[1], c_ac = clarke[2];
-    const double c_ba = clarke[3], c_bb = clarke[4], c_bc = clarke[5];
-    const double two_pi = 2.0 * PI;
-    const double amin2 = amin > 0.0 ? amin * amin : 0.0;
-    const double *xa = x_abc, *xb = x_abc + n, *xc = x_abc + 2 * n;
-    double *cos_th = cs, *sin_th = cs + n, *cos_v = cs + 2 * n, *sin_v = cs + 3 * n;
-    double steps = state[8], c = state[6], s = state[7];
-    if (steps == 0.0) {
-        c = cos(th);
-        s = sin(th);
-    }
-
+    struct pll p = pll_load(clarke, par, state);
     for (ptrdiff_t k = 0; k < n; ++k) {
-        const double al = c_aa * xa[k] + c_ab * xb[k] + c_ac * xc[k];
-        const double be = c_ba * xa[k] + c_bb * xb[k] + c_bc * xc[k];
-        const double d = al * c + be * s;
-        const double q = -al * s + be * c;
-        double e = 0.0;
-        if (isfinite(d) && isfinite(q) && d * d + q * q > amin2) {
-            e = phase_error(d, q); /* exact phase error of the +q alignment, amplitude-free */
-            ef += a_ef * (e - ef);
-            if (lck == 0.0) {
-                cnt = fabs(ef) < thr ? cnt + 1.0 : 0.0;
-                lck = cnt >= n_lock ? 1.0 : 0.0;
-            } else if (fabs(ef) > thr_off) {
-                lck = 0.0;
-                cnt = 0.0;
-                wn = wn_acq;
-            }
-        }
-        if (lck != 0.0 && wn > wn_trk) {
-            const double tapered = wn * taper;
-            wn = wn_trk > tapered ? wn_trk : tapered; /* Python's max(tapered, wn_trk) */
-        }
-        om += wn * wn * ts * e;
-        theta[k] = th;
-        omega[k] = om;
-        cos_th[k] = c;
-        sin_th[k] = s;
-        const double half = 0.5 * ts * om;
-        double ch, sh;
-        if (fabs(half) <= SMALL_ANGLE) {
-            small_cos_sin(half, &ch, &sh);
-            cos_v[k] = c * ch - s * sh;
-            sin_v[k] = s * ch + c * sh;
-        } else {
-            cos_v[k] = cos(th + half);
-            sin_v[k] = sin(th + half);
-        }
-        const double step = ts * (om + 2.0 * zeta * wn * e);
-        th += step;
-        const double turns = (th + PI) / two_pi;
-        if (turns < 0.0 || turns >= 1.0) /* floor(turns) is 0 in between: no libm call */
-            th -= two_pi * floor(turns);
-        steps += 1.0;
-        if (steps >= RESYNC || !(fabs(step) <= SMALL_ANGLE)) {
-            steps = 0.0;
-            c = cos(th);
-            s = sin(th);
-        } else {
-            double cr, sr;
-            small_cos_sin(step, &cr, &sr);
-            const double c_next = c * cr - s * sr;
-            s = s * cr + c * sr;
-            c = c_next;
-        }
+        double out[6];
+        pll_step(&p, x_abc[k], x_abc[n + k], x_abc[2 * n + k], out);
+        theta[k] = out[0];
+        omega[k] = out[1];
+        for (int j = 0; j < 4; ++j)
+            cs[j * n + k] = out[2 + j];
     }
-    state[0] = th;
-    state[1] = om;
-    state[2] = ef;
-    state[3] = cnt;
-    state[4] = lck;
-    state[5] = wn;
-    state[6] = c;
-    state[7] = s;
-    state[8] = steps;
+    pll_save(&p, state);
 }
 
 /* Free-run simulation x(k+1) = (A0 + omega(k) A1) x(k) + u(k) (agent/model.py), x(0) = x0.
@@ -188,4 +207,186 @@ void simulate_ltv(const double *a0, const double *a1, const double *omega, const
         xd[k + 1] = d;
         xq[k + 1] = q;
     }
+}
+
+
+/* nan_to_num's value of x: NaN -> 0, +-inf -> +-DBL_MAX (the PLL's input, whatever the samples). */
+static inline double finite_or_max(double x)
+{
+    return isfinite(x) ? x : isnan(x) ? 0.0 : copysign(DBL_MAX, x);
+}
+
+/* One block of the streaming pipeline's signal rows (agent/pipeline.py), in one pass.
+ *
+ * i_abc, v_abc (3, n): phase currents, A, and voltages, V. clarke (2, 3): the Clarke rows giving
+ * alpha, beta. limits (2,): |i| and |v| at or above which a sample is saturated.
+ * theta_last: the unwrapped angle of the sample before the block, rad.
+ * The angle: either angle (6, n): the angle (rad, wrapped or not), speed (rad/s), cos and sin of the
+ *            angle and of the voltages' mid angle angle + Ts omega / 2; or, when angle is NULL, the
+ *            PLL's over the currents (with non-finite samples as nan_to_num makes them): pll_par,
+ *            pll_state as pll_run's (the state updated in place).
+ * unwrapped (n,), written: the angle unwrapped continuing theta_last (np.unwrap's result: a step
+ *            of pi or more is taken back by whole turns).
+ * rows (12, n), written (float when f32, else double): va vb vc ia ib ic omega i_d i_q v_d v_q
+ *            p_in (pipeline._ROWS): the phases, the Park rotations of the currents at the angle and
+ *            of the voltages at the mid angle, the input power v.i (W).
+ * Returns 1 when a sample is NaN or saturated, else 0.
+ */
+int block_rows(const double *i_abc, const double *v_abc, ptrdiff_t n, const double *clarke, const double *limits,
+               double theta_last, const double *angle, const double *pll_par, double *pll_state,
+               double *unwrapped, void *rows, int f32)
+{
+    const double c_aa = clarke[0], c_ab = clarke[1], c_ac = clarke[2];
+    const double c_ba = clarke[3], c_bb = clarke[4], c_bc = clarke[5];
+    const double i_lim = limits[0], v_lim = limits[1], two_pi = 2.0 * PI;
+    struct pll p = {0};
+    if (angle == NULL)
+        p = pll_load(clarke, pll_par, pll_state);
+    float *r32 = (float *)rows;
+    double *r64 = (double *)rows;
+    double prev = theta_last, turns = 0.0;
+    int bad = 0;
+
+    for (ptrdiff_t k = 0; k < n; ++k) {
+        const double ia = i_abc[k], ib = i_abc[n + k], ic = i_abc[2 * n + k];
+        const double va = v_abc[k], vb = v_abc[n + k], vc = v_abc[2 * n + k];
+        double a[6]; /* angle, omega, cos, sin, cos and sin of the mid angle */
+        if (angle == NULL)
+            pll_step(&p, finite_or_max(ia), finite_or_max(ib), finite_or_max(ic), a);
+        else
+            for (int j = 0; j < 6; ++j)
+                a[j] = angle[j * n + k];
+        const double step = a[0] - prev;
+        if (!(fabs(step) < PI))
+            turns += -two_pi * rint(step / two_pi);
+        prev = a[0];
+        unwrapped[k] = a[0] + turns;
+        if (!(fabs(ia) < i_lim && fabs(ib) < i_lim && fabs(ic) < i_lim && fabs(va) < v_lim
+              && fabs(vb) < v_lim && fabs(vc) < v_lim))
+            bad = 1;
+        const double i_al = c_aa * ia + c_ab * ib + c_ac * ic, i_be = c_ba * ia + c_bb * ib + c_bc * ic;
+        const double v_al = c_aa * va + c_ab * vb + c_ac * vc, v_be = c_ba * va + c_bb * vb + c_bc * vc;
+        const double i_d = i_al * a[2] + i_be * a[3], i_q = -i_al * a[3] + i_be * a[2];
+        const double v_d = v_al * a[4] + v_be * a[5], v_q = -v_al * a[5] + v_be * a[4];
+        const double p_in = va * ia + vb * ib + vc * ic;
+#define STORE_ROWS(r)                                                                                   \
+    (r[k] = va, r[n + k] = vb, r[2 * n + k] = vc, r[3 * n + k] = ia, r[4 * n + k] = ib, r[5 * n + k] = ic, \
+     r[6 * n + k] = a[1], r[7 * n + k] = i_d, r[8 * n + k] = i_q, r[9 * n + k] = v_d,                   \
+     r[10 * n + k] = v_q, r[11 * n + k] = p_in)
+        if (f32)
+            STORE_ROWS(r32); /* rounded to float */
+        else
+            STORE_ROWS(r64);
+#undef STORE_ROWS
+    }
+    if (angle == NULL)
+        pll_save(&p, pll_state);
+    return bad;
+}
+
+#define LTV_RUNS 8 /* the most runs ltv_residuals takes at once */
+
+/* The phase-a residuals of m free runs of x(k+1) = (A0 + omega(k) A1) x(k) + u(k) over the same n
+ * samples (agent/pipeline.py's open windows), each from its own state:
+ * r_j(k) = (i_d(k) - x_d(k)) cos theta(k) - (i_q(k) - x_q(k)) sin theta(k).
+ *
+ * a0, a1 (2, 2); omega (n,); u (2, n); i_dq (2, n): the measured currents; theta (n,): the angle
+ * (rad, unwrapped). x (2, m), read and updated in place: each run's state at the first sample, then
+ * after the last (the step from sample n - 1), so that a stream cut into blocks continues exactly.
+ * r (m, n), written. m <= LTV_RUNS. The recursion is simulate_ltv's, operation by operation (the same x); cos
+ * and sin of theta come from a phasor rotated by the angle's steps (exact every RESYNC samples),
+ * within 1e-14 of libm's.
+ */
+void ltv_residuals(const double *a0, const double *a1, const double *omega, const double *u, const double *i_dq,
+                   const double *theta, ptrdiff_t n, ptrdiff_t m, double *x, double *r)
+{
+    const double a0_dd = a0[0], a0_dq = a0[1], a0_qd = a0[2], a0_qq = a0[3];
+    const double a1_dd = a1[0], a1_dq = a1[1], a1_qd = a1[2], a1_qq = a1[3];
+    const double *ud = u, *uq = u + n, *id = i_dq, *iq = i_dq + n;
+    double d[LTV_RUNS], q[LTV_RUNS], c = 0.0, s = 0.0;
+    if (m > LTV_RUNS)
+        return; /* the wrapper refuses it */
+    for (ptrdiff_t j = 0; j < m; ++j) {
+        d[j] = x[j];
+        q[j] = x[m + j];
+    }
+    for (ptrdiff_t k = 0; k < n; ++k) {
+        const double step = k > 0 ? theta[k] - theta[k - 1] : 0.0;
+        if (k % RESYNC == 0 || !(fabs(step) <= SMALL_ANGLE)) {
+            c = cos(theta[k]);
+            s = sin(theta[k]);
+        } else {
+            double cr, sr;
+            small_cos_sin(step, &cr, &sr);
+            const double c_next = c * cr - s * sr;
+            s = s * cr + c * sr;
+            c = c_next;
+        }
+        const double w = omega[k], b_dd = a0_dd + w * a1_dd, b_dq = a0_dq + w * a1_dq;
+        const double b_qd = a0_qd + w * a1_qd, b_qq = a0_qq + w * a1_qq;
+        for (ptrdiff_t j = 0; j < m; ++j) {
+            r[j * n + k] = (id[k] - d[j]) * c - (iq[k] - q[j]) * s;
+            const double d_next = b_dd * d[j] + b_dq * q[j] + ud[k];
+            q[j] = b_qd * d[j] + b_qq * q[j] + uq[k];
+            d[j] = d_next;
+        }
+    }
+    for (ptrdiff_t j = 0; j < m; ++j) {
+        x[j] = d[j];
+        x[m + j] = q[j];
+    }
+}
+
+/* Sums over n samples of the signal ring from column start (wrapping at n_ring), for the span's
+ * operating point, running check and torque regression (pipeline.HopSums).
+ *
+ * ring (12, n_ring) (float when f32, else double): the rows of block_rows. theta_ring (n_ring,).
+ * out (15,), written: power, omega, i_q, i_d i_q, i_d^2 + i_q^2 (sums), the minima of i_d, i_q, their
+ *            maxima (NaN when a sample is NaN), the angle's mean, then the sums of dth^2,
+ *            dth omega, dth power, omega^2, omega power, dth being the angle less its mean.
+ */
+void ring_sums(const void *ring, int f32, ptrdiff_t n_ring, const double *theta_ring, ptrdiff_t start,
+               ptrdiff_t n, double *out)
+{
+    double mean = 0.0;
+    for (ptrdiff_t k = 0, j = start; k < n; ++k, j = j + 1 == n_ring ? 0 : j + 1)
+        mean += theta_ring[j] - theta_ring[start];
+    mean = theta_ring[start] + mean / (double)n;
+    double p = 0.0, w = 0.0, iq = 0.0, idq = 0.0, isq = 0.0, tt = 0.0, tw = 0.0, tp = 0.0, ww = 0.0, wp = 0.0;
+    double lo_d = INFINITY, lo_q = INFINITY, hi_d = -INFINITY, hi_q = -INFINITY;
+    int nan_d = 0, nan_q = 0;
+    /* one loop per storage type (no test of it per sample) */
+#define SUM_RING(r)                                                                                  \
+    for (ptrdiff_t k = 0, j = start; k < n; ++k, j = j + 1 == n_ring ? 0 : j + 1) {                  \
+        const double om = r[6 * n_ring + j], i_d = r[7 * n_ring + j], i_q = r[8 * n_ring + j];       \
+        const double pw = r[11 * n_ring + j], dth = theta_ring[j] - mean;                            \
+        p += pw;                                                                                     \
+        w += om;                                                                                     \
+        iq += i_q;                                                                                   \
+        idq += i_d * i_q;                                                                            \
+        isq += i_d * i_d + i_q * i_q;                                                                \
+        tt += dth * dth;                                                                             \
+        tw += dth * om;                                                                              \
+        tp += dth * pw;                                                                              \
+        ww += om * om;                                                                               \
+        wp += om * pw;                                                                               \
+        nan_d |= isnan(i_d);                                                                         \
+        nan_q |= isnan(i_q);                                                                         \
+        lo_d = i_d < lo_d ? i_d : lo_d;                                                              \
+        hi_d = i_d > hi_d ? i_d : hi_d;                                                              \
+        lo_q = i_q < lo_q ? i_q : lo_q;                                                              \
+        hi_q = i_q > hi_q ? i_q : hi_q;                                                              \
+    }
+    if (f32) {
+        const float *r32 = (const float *)ring;
+        SUM_RING(r32)
+    } else {
+        const double *r64 = (const double *)ring;
+        SUM_RING(r64)
+    }
+#undef SUM_RING
+    const double sums[15] = {p, w, iq, idq, isq, nan_d ? NAN : lo_d, nan_q ? NAN : lo_q,
+                             nan_d ? NAN : hi_d, nan_q ? NAN : hi_q, mean, tt, tw, tp, ww, wp};
+    for (int j = 0; j < 15; ++j)
+        out[j] = sums[j];
 }

@@ -85,7 +85,7 @@ def spectrum_peaks(baseline: Baseline, freqs: np.ndarray, amp: np.ndarray, fe_hz
     weakest = np.argmin(mag, axis=0)  # the window where each line is lowest
     cols = np.arange(len(lines))
     mag_min, bin_at = mag[weakest, cols], idx[weakest, cols]
-    centre = np.array([nearest_bin(freqs, f) for f in targets])
+    centre = nearest_bin(freqs, targets)
     th2, th3 = th.th2[centre], th.th3[centre]
     peaks = []
     for j, (family, k, f) in enumerate(lines):

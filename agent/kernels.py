@@ -1,7 +1,7 @@
 """The per-sample recursions of the agent's runtime path, in C (``agent/_kernels.c``) through ctypes.
 
-The PLL loop and the dq model's free-run simulation are the only sample-by-sample loops the
-running agent needs. They are plain C so that the agent never imports numba: numba and its LLVM
+The PLL loop, the dq model's free-run simulation and the streaming pipeline's per-block pass
+(:func:`block_rows`, :func:`ring_sums`, :func:`ltv_residuals`) are the sample-by-sample loops the running agent needs. They are plain C so that the agent never imports numba: numba and its LLVM
 cost about 120 MB of resident memory, most of the agent's 150 MB budget. The shared object is
 built in place by ``make setup`` (``pip install -e .``, a setuptools extension declared in
 pyproject.toml) and sits next to this file. The development tools (``agent.simulator``,
@@ -20,7 +20,7 @@ from numpy.ctypeslib import ndpointer
 _NAME = "_kernels"
 
 
-_ABI = 2  #: the interface of agent/_kernels.c this module calls (its kernels_abi())
+_ABI = 3  #: the interface of agent/_kernels.c this module calls (its kernels_abi())
 
 
 def _load() -> ctypes.CDLL:
@@ -46,7 +46,20 @@ _lib.pll_run.restype = None
 _lib.pll_run.argtypes = [_IN, ctypes.c_ssize_t, _IN, _IN, _OUT, _OUT, _OUT, _OUT]
 _lib.simulate_ltv.restype = None
 _lib.simulate_ltv.argtypes = [_IN, _IN, _IN, _IN, _IN, ctypes.c_ssize_t, _OUT]
+_lib.ltv_residuals.restype = None
+_lib.ltv_residuals.argtypes = [_IN, _IN, _IN, _IN, _IN, _IN, ctypes.c_ssize_t, ctypes.c_ssize_t, _OUT, _OUT]
+_lib.block_rows.restype = ctypes.c_int
+_lib.block_rows.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_ssize_t, ctypes.c_void_p, ctypes.c_void_p,
+                            ctypes.c_double, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
+                            ctypes.c_void_p, ctypes.c_int]
+_lib.ring_sums.restype = None
+_lib.ring_sums.argtypes = [ctypes.c_void_p, ctypes.c_int, ctypes.c_ssize_t, _IN, ctypes.c_ssize_t,
+                           ctypes.c_ssize_t, _OUT]
 
+#: The rows :func:`block_rows` writes (agent.pipeline's signal ring).
+ROWS = ("va", "vb", "vc", "ia", "ib", "ic", "omega_e", "i_d", "i_q", "v_d", "v_q", "p_in")
+
+LTV_RUNS = 8  #: the most free runs :func:`ltv_residuals` takes at once (agent/_kernels.c's)
 #: Length of the PLL's parameter vector and of its state vector.
 PLL_N_PAR, PLL_N_STATE = 10, 9
 
@@ -92,3 +105,72 @@ def simulate_ltv(a0, a1, omega, u, x0) -> np.ndarray:
     _lib.simulate_ltv(_f64(a0, (2, 2), "a0"), _f64(a1, (2, 2), "a1"), w, _f64(u, (2, n), "u"),
                       _f64(x0, (2,), "x0"), n, x)
     return x
+
+
+def ltv_residuals(a0, a1, omega, u, i_dq, theta, x0) -> tuple[np.ndarray, np.ndarray]:
+    """The phase-a residuals of m free runs of :func:`simulate_ltv` over the same samples, each
+    from its own state ``x0`` ``(2, m)``: ``(i_d - x_d) cos(theta) - (i_q - x_q) sin(theta)``,
+    ``(m, N)`` (units of ``i_dq``; m <= :data:`LTV_RUNS`), and the states after the last sample ``(2, m)`` (a stream cut
+    into blocks continues exactly). ``omega`` ``(N,)``; ``u``, ``i_dq`` ``(2, N)``; ``theta``
+    ``(N,)``, rad."""
+    w = _f64(omega, (None,), "omega")
+    n = w.size
+    x = np.array(x0, dtype=np.float64)  # a copy: the kernel updates the states in place
+    m = x.shape[1] if x.ndim == 2 else 0
+    if m > LTV_RUNS:
+        raise ValueError(f"ltv_residuals: at most {LTV_RUNS} runs at once, got {m}")
+    r = np.empty((m, n))
+    _lib.ltv_residuals(_f64(a0, (2, 2), "a0"), _f64(a1, (2, 2), "a1"), w, _f64(u, (2, n), "u"),
+                       _f64(i_dq, (2, n), "i_dq"), _f64(theta, (n,), "theta"), n, m, _f64(x, (2, m), "x0"), r)
+    return r, x
+
+
+def _rows_dtype(a: np.ndarray, shape: tuple[int, int], name: str) -> int:
+    """1 for a float32, 0 for a float64 C-contiguous ``a`` of ``shape`` (what the C side is told)."""
+    if a.dtype not in (np.float32, np.float64) or not a.flags.c_contiguous or a.shape != shape:
+        raise ValueError(f"{name} must be a C-contiguous float32 or float64 array shaped {shape}")
+    return int(a.dtype == np.float32)
+
+
+def block_rows(i_abc, v_abc, clarke, limits, theta_last: float, rows: np.ndarray, angle=None, pll=None):
+    """One block of the streaming pipeline's signal rows in one pass; writes ``rows`` ``(12, N)``
+    (float32 or float64, :data:`ROWS`: the phases, speed, the currents' Park rotation at the angle,
+    the voltages' at the mid angle, input power in W) from ``i_abc``, ``v_abc`` ``(3, N)`` (A, V).
+
+    The angle is either ``angle`` ``(6, N)``: angle (rad), speed (rad/s), cos and sin of the angle
+    and of the mid angle angle + Ts speed / 2; or the PLL's over the currents (non-finite samples
+    as :func:`numpy.nan_to_num` makes them), ``pll`` = (par, state) as :func:`pll_run`'s.
+    ``clarke`` ``(2, 3)``; ``limits`` = (max |i|, max |v|): saturation; ``theta_last``: the unwrapped
+    angle before the block, rad. Returns the angle unwrapped from ``theta_last`` ``(N,)``, whether
+    a sample is NaN or saturated, and the PLL's new state (None with ``angle``)."""
+    i = _f64(i_abc, (3, None), "i_abc")
+    n = i.shape[1]
+    v, cl, lim = _f64(v_abc, (3, n), "v_abc"), _f64(clarke, (2, 3), "clarke"), _f64(limits, (2,), "limits")
+    f32 = _rows_dtype(rows, (len(ROWS), n), "rows")
+    if (angle is None) == (pll is None):
+        raise ValueError("block_rows: give either angle or pll")
+    unwrapped = np.empty(n)
+    if angle is not None:
+        ang, par, zf = _f64(angle, (6, n), "angle"), None, None
+    else:
+        ang, par = None, _f64(pll[0], (PLL_N_PAR,), "par")
+        zf = _f64(np.array(pll[1], dtype=np.float64), (PLL_N_STATE,), "zi")  # a copy, updated in place
+    ptr = lambda a: None if a is None else a.ctypes.data  # noqa: E731
+    bad = _lib.block_rows(i.ctypes.data, v.ctypes.data, n, cl.ctypes.data, lim.ctypes.data, float(theta_last),
+                          ptr(ang), ptr(par), ptr(zf), unwrapped.ctypes.data, rows.ctypes.data, f32)
+    return unwrapped, bool(bad), zf
+
+
+def ring_sums(ring: np.ndarray, theta_ring, start: int, n: int) -> np.ndarray:
+    """Sums over ``n`` samples of the pipeline's signal ring (``(12, M)`` float32 or float64, the
+    rows of :func:`block_rows`; angle ``theta_ring`` ``(M,)``, rad) from column ``start``, wrapping:
+    (15,) = sums of power (W), omega, i_q, i_d i_q, i_d^2 + i_q^2; minima of i_d, i_q and maxima
+    (NaN when a sample is NaN); the angle's mean; sums of dth^2, dth omega, dth power, omega^2,
+    omega power (dth: the angle less its mean)."""
+    m = ring.shape[1] if ring.ndim == 2 else 0
+    f32 = _rows_dtype(ring, (len(ROWS), m), "ring")
+    if not (0 <= start < m and 0 < n <= m):
+        raise ValueError(f"ring_sums: start {start} and n {n} must lie within the ring's {m} columns")
+    out = np.empty(15)
+    _lib.ring_sums(ring.ctypes.data, f32, m, _f64(theta_ring, (m,), "theta_ring"), start, n, out)
+    return out

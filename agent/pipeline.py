@@ -44,13 +44,13 @@ import numpy as np
 from agent.baseline import SEARCH_BINS, BaselineBuilder, TrainingRecord, residual_spectra
 from agent.decision import STATES, decide
 from agent.evidence import FULL_EVIDENCE_STRETCHES, AlarmConfig, AlarmLogic, feature_values, learning_shift
-from agent.frames import CLARKE, cos_sin32, park
+from agent.frames import CLARKE, cos_sin32
 from agent.identify import cluster_point, operating_point_of_means, solve_torque
 from agent.sanity import not_running_of
 from agent.library import ModelLibrary
-from agent.model import BASE_TERMS, Signals, input_power, regressors
+from agent.model import BASE_TERMS, Signals
 from agent.pll import PLL
-from agent.kernels import simulate_ltv
+from agent.kernels import ROWS, block_rows, ltv_residuals, ring_sums
 from agent.spectrum import amplitude_spectrum
 from agent.training import ACCEPT_FLAG, fault_reading
 from agent.profile import DriveProfile
@@ -64,10 +64,10 @@ _THETA_LIMIT = 2.0**20  #: rad; the buffered angle is kept below this
 #: starting while learning): with 40 stretches P(|t_38| > 6) = 5e-7 per split and feature
 LEARNING_SHIFT_T = 6.0
 LEARNING_SHIFT_MIN = 20  #: stretches from which the check is made (fewer: too little to tell)
-#: rows of the signal ring: phase voltages and currents, speed, dq signals, power; stored as
-#: float32 (24-bit mantissa, above any ADC's resolution). The angle has a float64 ring of its own:
-#: unwrapped up to _THETA_LIMIT, float32 would resolve it to 0.06 rad.
-_ROWS = ("va", "vb", "vc", "ia", "ib", "ic", "omega_e", "i_d", "i_q", "v_d", "v_q", "p_in")
+#: rows of the signal ring (agent.kernels.block_rows writes them): phase voltages and currents,
+#: speed, dq signals, power; stored as float32 (24-bit mantissa, above any ADC's resolution). The
+#: angle has a float64 ring of its own: unwrapped up to _THETA_LIMIT, float32 would resolve it to 0.06 rad.
+_ROWS = ROWS
 RING_DTYPE = np.float32
 
 
@@ -114,15 +114,11 @@ class HopSums:
     omega_power: float
 
 
-def hop_sums(sig: Signals) -> HopSums:
-    """The :class:`HopSums` of one hop's signals."""
-    i, w, p = sig.i_dq, sig.omega_e, sig.power
-    mean = float(np.mean(sig.theta_e))
-    dth = sig.theta_e - mean
-    return HopSums(sig.n, float(p.sum()), float(w.sum()), float(i[1].sum()), float(i[0] @ i[1]),
-                   float(np.einsum("ij,ij->", i, i)),
-                   tuple(i.min(axis=1).tolist()), tuple(i.max(axis=1).tolist()), mean, float(dth @ dth),
-                   float(dth @ w), float(dth @ p), float(w @ w), float(w @ p))
+def hop_sums(ring: np.ndarray, theta: np.ndarray, start: int, n: int) -> HopSums:
+    """The :class:`HopSums` of ``n`` samples of the signal ring (rows :data:`_ROWS`, angle
+    ``theta``) from column ``start`` (:func:`agent.kernels.ring_sums`)."""
+    s = ring_sums(ring, theta, start, n).tolist()
+    return HopSums(n, *s[:5], tuple(s[5:7]), tuple(s[7:9]), *s[9:])
 
 
 class _OpenWindows:
@@ -140,13 +136,6 @@ def _per_sample(model) -> bool:
     """True when the model's free run is a per-sample recursion of per-sample inputs, so that a
     window's simulation can be split at hop boundaries (Euler, no effect terms)."""
     return model.discretisation == "euler" and not model.extra_d and not model.extra_q
-
-
-def _ltv_step(a0: np.ndarray, a1: np.ndarray, w: float, u: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """One step of :func:`agent.kernels.simulate_ltv`, operation by operation as the C loop."""
-    w, ud, uq, d, q = float(w), float(u[0]), float(u[1]), float(x[0]), float(x[1])
-    return np.array([(float(a0[0, 0]) + w * float(a1[0, 0])) * d + (float(a0[0, 1]) + w * float(a1[0, 1])) * q + ud,
-                     (float(a0[1, 0]) + w * float(a1[1, 0])) * d + (float(a0[1, 1]) + w * float(a1[1, 1])) * q + uq])
 
 
 @dataclass(frozen=True)
@@ -197,6 +186,7 @@ class DriveMonitor:
                  config: PipelineConfig = PipelineConfig(), on_event=None):
         self.drive, self.profile, self.library, self.config = drive, profile, library, config
         self.rate = profile.sampling.rate_hz
+        self._limits = np.array([config.max_current_a, config.max_voltage_v])  #: saturation, A and V
         self.n_win = int(round(config.window_s * self.rate))
         self.n_hop = int(round(config.hop_s * self.rate))
         self.n_span = self.n_win * config.span_windows
@@ -250,36 +240,29 @@ class DriveMonitor:
         self._next_sample = block.first_sample + block.n
         self.last_input = time.monotonic()
         self._encoder = block.theta_e is not None
+        # one C pass: the ring's rows (Clarke, Park, power), the saturation check and the angle
+        # unwrapped across blocks (Signals wants it so); kept below 2^20 rad by shifting the whole
+        # buffer by whole turns, which changes no cosine and no difference
+        data = np.empty((len(_ROWS), block.n), dtype=self._ring.dtype)
         if block.theta_e is not None:
             theta = block.theta_e
             omega = block.omega_e if block.omega_e is not None else np.gradient(np.unwrap(theta)) * self.rate
-            cs = None
+            angle = np.concatenate(([theta], [omega], cos_sin32(theta), cos_sin32(theta + 0.5 * omega / self.rate)))
+            theta, bad, _ = block_rows(block.i_abc, block.v_abc, CLARKE[:2], self._limits, self._theta_last, data,
+                                       angle=angle)
         else:
             if self._samples == 0:  # a new stream: the PLL starts where it starts, as offline (record_signals)
                 self.pll.reset(block.i_abc)
-            # the PLL's loop has the angle's cos and sin (and the voltages' mid angle's) at hand
-            theta, omega, cs = self.pll.process(block.i_abc if np.isfinite(block.i_abc).all()
-                                                else np.nan_to_num(block.i_abc), cos_sin=True)
-        # continuous angle across blocks (Signals wants it unwrapped); kept below 2^20 rad by
-        # shifting the whole buffer by whole turns, which changes no cosine and no difference
-        step = np.diff(theta, prepend=self._theta_last)  # np.unwrap's result, a tenth of its overhead
-        theta = theta + np.cumsum(np.where(np.abs(step) < np.pi, 0.0, -2 * np.pi * np.rint(step / (2 * np.pi))))
+            # the PLL's loop writes the rows (its angle's cos and sin and the voltages' mid angle's at hand)
+            theta, bad = self.pll.process_rows(block.i_abc, block.v_abc, self._limits, self._theta_last, data)
+        if bad:
+            self._bad_until = self._samples + block.n + self.n_span  # spans containing this block are bad
         if theta[-1] > _THETA_LIMIT:
             turns = 2 * np.pi * np.floor(theta[0] / (2 * np.pi))
             theta = theta - turns
             self._theta -= turns
             self._hop_sums = {k: replace(h, theta_mean=h.theta_mean - turns) for k, h in self._hop_sums.items()}
         self._theta_last = theta[-1]
-        i_max, v_max = np.abs(block.i_abc).max(), np.abs(block.v_abc).max()  # NaN propagates
-        if not (i_max < self.config.max_current_a and v_max < self.config.max_voltage_v):
-            self._bad_until = self._samples + block.n + self.n_span  # spans containing this block are bad
-        data = np.empty((len(_ROWS), block.n), dtype=self._ring.dtype)
-        data[0:3], data[3:6], data[6] = block.v_abc, block.i_abc, omega
-        if cs is None:
-            cs = np.concatenate((cos_sin32(theta), cos_sin32(theta + 0.5 * omega / self.rate)))
-        data[7:9] = park(CLARKE[:2] @ block.i_abc, cs[0], cs[1])  # eq. 2
-        data[9:11] = park(CLARKE[:2] @ block.v_abc, cs[2], cs[3])  # ZOH voltage (mid angle), see Signals
-        data[11] = input_power(block.v_abc, block.i_abc)
         out, pos = [], 0
         while pos < block.n:
             take = min(block.n - pos, self.n_hop - self._since_hop)
@@ -288,7 +271,8 @@ class DriveMonitor:
             self._since_hop += take
             if self._since_hop == self.n_hop:
                 self._since_hop = 0
-                self._hop_sums[self._samples] = hop_sums(self._signals(self.n_hop, checked=False))
+                self._hop_sums[self._samples] = hop_sums(self._ring, self._theta, (self._write - self.n_hop) % self.n_span,
+                                                         self.n_hop)
                 for old in [k for k in self._hop_sums if k <= self._samples - self.n_span]:
                     del self._hop_sums[old]
                 status = self._hop()
@@ -399,9 +383,10 @@ class DriveMonitor:
     def _hop_residuals(self, name: str) -> None:
         """Bring the open windows' residuals up to the newest sample: each hop since the last call
         is read out once and simulated from the state each open window reached (and from the
-        measured current for the window that starts on it), which continues every window's
-        free run exactly where a simulation of the whole window would be (the same C recursion,
-        split, the state carried in float64); the residual of a hop is kept in float32 until its
+        measured current for the window that starts on it; :func:`agent.kernels.ltv_residuals`,
+        every open window in one call), which continues every window's free run exactly where a
+        simulation of the whole window would be (the same C recursion, split, the state carried in
+        float64); the residual of a hop is kept in float32 until its
         window completes (:func:`residual_bytes`); a window that completes leaves its phase-a
         residual in ``done``."""
         ow, model = self._open, self.library.baselines[name].model
@@ -410,14 +395,12 @@ class DriveMonitor:
         a0, a1 = model.state_matrices()
         for hop_end in range(ow.upto + self.n_hop, self._samples + 1, self.n_hop):
             part = self._signals(self.n_hop, self._samples - hop_end, checked=False, phases=False)
-            c, s = cos_sin32(part.theta_e)
-            u, w = model.exogenous(part), part.omega_e
             ow.windows.append([hop_end - self.n_hop, [], part.i_dq[:, 0]])
-            for win in ow.windows:
-                x = simulate_ltv(a0, a1, w, u, win[2])
-                r_d, r_q = part.i_dq - x
-                win[1].append(r_d * c - r_q * s)
-                win[2] = _ltv_step(a0, a1, w[-1], u[:, -1], x[:, -1])
+            r, x = ltv_residuals(a0, a1, part.omega_e, model.exogenous(part), part.i_dq, part.theta_e,
+                                 np.column_stack([win[2] for win in ow.windows]))
+            for j, win in enumerate(ow.windows):
+                win[1].append(r[j])
+                win[2] = x[:, j]
             for win in [v for v in ow.windows if len(v[1]) * self.n_hop == self.n_win]:
                 ow.windows.remove(win)
                 ow.done = {hop_end: np.concatenate(win[1])}
@@ -511,8 +494,8 @@ class DriveMonitor:
                 back = self._samples - end
                 n = self.n_hop + int(back + self.n_hop + 1 <= self._filled)  # the sample before, if still held
                 part = self._signals(n, back, phases=bool(m.extra_q))
-                x = regressors(terms, part)[:-1]
-                self._q_info[end] = (name, x.T @ x, x.T @ part.i_dq[1, 1:])
+                x = np.array([t.column(part) for t in terms])[:, :-1]  # regressors(), transposed: rows
+                self._q_info[end] = (name, x @ x.T, x @ part.i_dq[1, 1:])
         for old in [k for k in self._q_info if k not in ends]:
             del self._q_info[old]
         info = sum(self._q_info[e][1] for e in ends) + np.eye(len(terms)) * 1e-6

@@ -44,7 +44,7 @@ import math
 import numpy as np
 
 from agent.frames import CLARKE
-from agent.kernels import pll_run
+from agent.kernels import block_rows, pll_run
 
 #: Damping of the loop.
 ZETA = 1.0 / math.sqrt(2.0)
@@ -111,6 +111,16 @@ class PLL:
             raise ValueError(f"x_abc must be shaped (3, N), got {x.shape}")
         theta, omega, self._state, cs = pll_run(x, self._clarke, self._par, self._state, cos_sin=True)
         return (theta, omega, cs) if cos_sin else (theta, omega)
+
+    def process_rows(self, i_abc, v_abc, limits, theta_last: float, rows: np.ndarray) -> tuple[np.ndarray, bool]:
+        """Track a block of currents ``i_abc`` ``(3, N)`` (non-finite samples taken as
+        :func:`numpy.nan_to_num` makes them) and write, in the same pass, the streaming pipeline's
+        signal rows from it and ``v_abc`` (:func:`agent.kernels.block_rows`: ``rows`` ``(12, N)``;
+        ``limits`` = max |i|, |v|). Returns ``theta_e`` unwrapped from ``theta_last`` (rad) and
+        whether a sample is NaN or saturated."""
+        theta, bad, self._state = block_rows(i_abc, v_abc, self._clarke, limits, theta_last, rows,
+                                             pll=(self._par, self._state))
+        return theta, bad
 
 
 def input_start(x_abc, rate_hz: float, span_s: float = 0.02) -> tuple[float, float] | None:

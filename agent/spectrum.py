@@ -57,7 +57,7 @@ def peak_near(freqs, amplitude, f_hz, half_width: int = 1):
     freqs = np.asarray(freqs, dtype=float)
     amplitude = np.asarray(amplitude)
     targets = np.atleast_1d(f_hz)
-    centre = np.array([nearest_bin(freqs, f, half_width) for f in targets.ravel()])
+    centre = nearest_bin(freqs, targets.ravel(), half_width)
     around = np.clip(centre[:, None] + np.arange(-half_width, half_width + 1), 0, freqs.size - 1)
     near = amplitude[..., around]  # (..., lines, search)
     best = np.argmax(near, axis=-1)
@@ -70,13 +70,17 @@ def peak_near(freqs, amplitude, f_hz, half_width: int = 1):
     return idx, freqs[idx], mag
 
 
-def nearest_bin(freqs, f_hz: float, half_width: int = 0) -> int:
-    """Index of the bin nearest ``f_hz``; ``ValueError`` if it lies more than ``half_width`` + 1/2 bins off the grid."""
+def nearest_bin(freqs, f_hz, half_width: int = 0):
+    """Index of the bin nearest ``f_hz`` (Hz; one frequency, or an array: an index array shaped as
+    it); ``ValueError`` if one lies more than ``half_width`` + 1/2 bins off the grid."""
     df = freqs[1] - freqs[0]
-    pos = (f_hz - freqs[0]) / df
-    if not -half_width - 0.5 <= pos <= freqs.size - 0.5 + half_width:
-        raise ValueError(f"{f_hz:g} Hz is outside the spectrum ({freqs[0]:g}..{freqs[-1]:g} Hz)")
-    return int(np.clip(np.rint(pos), 0, freqs.size - 1))
+    pos = (np.asarray(f_hz, dtype=float) - freqs[0]) / df
+    off = ~((-half_width - 0.5 <= pos) & (pos <= freqs.size - 0.5 + half_width))
+    if off.any():
+        f = np.asarray(f_hz, dtype=float)[off] if pos.ndim else f_hz
+        raise ValueError(f"{float(np.ravel(f)[0]):g} Hz is outside the spectrum ({freqs[0]:g}..{freqs[-1]:g} Hz)")
+    idx = np.clip(np.rint(pos), 0, freqs.size - 1).astype(int)
+    return int(idx) if idx.ndim == 0 else idx
 
 
 def envelope(amplitude, half_width: int = 1) -> np.ndarray:

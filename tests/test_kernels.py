@@ -1,5 +1,9 @@
 """agent.kernels (the C kernels through ctypes) against literal Python transcriptions written here.
 
+The pipeline's per-block pass (block_rows) and its hop sums (ring_sums) are compared with the numpy
+expressions they replace (np.unwrap, the Clarke matrix and numpy's Park rotation, einsum, sums and
+dot products over float64 copies), to float32 rounding where the rows are float32.
+
 The free-run simulation's reference repeats the C recursion operation by operation in Python
 floats, so that comparison is exact. The PLL's reference is the loop as it was first written,
 libm's cos, sin, hypot and atan2 every sample; the C loop rotates a phasor and takes the phase
@@ -19,7 +23,8 @@ import numpy as np
 import pytest
 
 from agent import kernels
-from agent.kernels import pll_run, simulate_ltv
+from agent.frames import CLARKE, park
+from agent.kernels import block_rows, ltv_residuals, pll_run, ring_sums, simulate_ltv
 from agent.pll import PLL
 
 FS = 25_000.0
@@ -138,6 +143,131 @@ def test_simulate_ltv_equals_reference_and_takes_views():
     np.testing.assert_array_equal(simulate_ltv(a0, a1, omega, u, x0), ltv_reference(a0, a1, omega, u, x0))
     np.testing.assert_array_equal(simulate_ltv(a0, a1, omega[:1], u[:, :1], x0), x0[:, None])
     assert simulate_ltv(a0, a1, omega[:0], u[:, :0], x0).shape == (2, 0)
+
+
+def rows_reference(i_abc, v_abc, theta, omega, cs, theta_last):
+    """The pipeline's rows in numpy as they were computed before the C pass, float64; the angle
+    unwrapped by np.unwrap from theta_last."""
+    with np.errstate(invalid="ignore"):  # inf * 0 in the matrix product: NaN, as in C
+        rows = np.vstack((v_abc, i_abc, omega, park(CLARKE[:2] @ i_abc, cs[0], cs[1]),
+                          park(CLARKE[:2] @ v_abc, cs[2], cs[3]), np.einsum("ij,ij->j", v_abc, i_abc)))
+    return rows, np.unwrap(np.concatenate(([theta_last], theta)))[1:]
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_block_rows_at_a_given_angle_equals_numpy(dtype):
+    rng = np.random.default_rng(5)
+    n = 3000
+    i_abc, v_abc = three_phase(n, 97.0, 20.0, seed=1), three_phase(n, 97.0, 300.0, seed=2)
+    omega = 2 * np.pi * 97.0 + rng.standard_normal(n)
+    theta = np.angle(np.exp(1j * (np.cumsum(omega) / FS + 0.3)))  # wrapped to (-pi, pi]
+    mid = theta + 0.5 * omega / FS
+    cs = np.vstack((np.cos(theta), np.sin(theta), np.cos(mid), np.sin(mid)))
+    want, unwrapped = rows_reference(i_abc, v_abc, theta, omega, cs, 1000.0)
+    rows = np.full((12, n), np.nan, dtype=dtype)
+    got, bad, zf = block_rows(i_abc, v_abc, CLARKE[:2], [np.inf, np.inf], 1000.0, rows,
+                              angle=np.vstack((theta, omega, cs)))
+    assert not bad and zf is None
+    np.testing.assert_allclose(got, unwrapped, rtol=0, atol=1e-9)
+    assert abs(got[0] - 1000.0) < np.pi and np.abs(np.diff(got)).max() < 0.1  # continuous
+    if dtype == np.float64:
+        np.testing.assert_allclose(rows, want, rtol=1e-12, atol=1e-9)
+    else:  # the same value rounded to float32: at most an ulp apart (a last-bit tie in float64)
+        np.testing.assert_array_max_ulp(rows, want.astype(np.float32), maxulp=1)
+
+
+def test_block_rows_flags_nan_and_saturated_samples():
+    n = 500
+    i_abc, v_abc = three_phase(n, 100.0, 10.0, seed=3), three_phase(n, 100.0, 200.0, seed=4)
+    angle = np.vstack((np.zeros(n), np.zeros(n), np.ones(n), np.zeros(n), np.ones(n), np.zeros(n)))
+    lim = [np.abs(i_abc).max() * 1.001, np.abs(v_abc).max() * 1.001]
+    run = lambda i, v, limits=lim: block_rows(i, v, CLARKE[:2], limits, 0.0, np.empty((12, n)), angle=angle)[1]  # noqa: E731
+    assert not run(i_abc, v_abc)
+    assert run(i_abc, v_abc, [lim[0], np.abs(v_abc).max()])  # at the limit: saturated
+    assert run(i_abc, v_abc, [np.abs(i_abc).max(), lim[1]])
+    for row, which in ((2, "i"), (0, "v")):
+        x = (i_abc if which == "i" else v_abc).copy()
+        x[row, 321] = np.nan
+        assert run(x, v_abc) if which == "i" else run(i_abc, x)
+
+
+@pytest.mark.parametrize("with_nan", [False, True])
+def test_block_rows_through_the_pll_equals_pll_run_then_numpy(with_nan):
+    """The PLL inside the pass: the same loop as pll_run (its state, and the rows at pll_run's
+    angle), on the input as nan_to_num makes it; the rows keep the NaN."""
+    n = 5000
+    i_abc, v_abc = three_phase(n, 103.0, 15.0, seed=6), three_phase(n, 103.0, 250.0, seed=8)
+    if with_nan:
+        i_abc[1, 2000:2003] = np.nan
+        i_abc[0, 2500] = np.inf
+    pll = PLL(FS, 100.0)
+    pll.reset(i_abc[:, :1000])
+    theta, omega, zf, cs = pll_run(np.nan_to_num(i_abc), pll._clarke, pll._par, pll._state, cos_sin=True)
+    want, unwrapped = rows_reference(i_abc, v_abc, theta, omega, cs, -5.0)
+    rows = np.empty((12, n))
+    got, bad, zf_got = block_rows(i_abc, v_abc, CLARKE[:2], [1e9, 1e9], -5.0, rows, pll=(pll._par, pll._state))
+    assert bad == with_nan
+    np.testing.assert_array_equal(zf_got, zf)
+    np.testing.assert_allclose(got, unwrapped, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(rows, want, rtol=1e-12, atol=1e-9)  # NaN where numpy has NaN
+    pll2 = PLL(FS, 100.0)
+    pll2._state = pll._state.copy()
+    for k in range(0, n, 1234):  # in blocks: the same stream
+        part, _ = pll2.process_rows(i_abc[:, k:k + 1234], v_abc[:, k:k + 1234], [1e9, 1e9],
+                                    got[k - 1] if k else -5.0, rows[:, k:k + 1234].copy())
+        np.testing.assert_allclose(part, got[k:k + 1234], rtol=1e-15, atol=0)  # turns added per block
+    np.testing.assert_array_equal(pll2._state, zf)
+
+
+def sums_reference(rows, theta):
+    """The hop sums in numpy, over float64 copies (as pipeline.hop_sums took them before)."""
+    i, w, p = rows[7:9].astype(float), rows[6].astype(float), rows[11].astype(float)
+    mean = float(np.mean(theta))
+    dth = theta - mean
+    return np.array([p.sum(), w.sum(), i[1].sum(), i[0] @ i[1], np.einsum("ij,ij->", i, i), *i.min(axis=1),
+                     *i.max(axis=1), mean, dth @ dth, dth @ w, dth @ p, w @ w, w @ p])
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_ring_sums_equal_numpy_across_the_wrap(dtype):
+    rng = np.random.default_rng(9)
+    m, start, n = 1000, 700, 600  # wraps after 300 samples
+    ring = (rng.standard_normal((12, m)) * 10 + 5).astype(dtype)
+    theta = 3e5 + np.cumsum(rng.uniform(0.0, 0.05, m))
+    take = (np.arange(n) + start) % m
+    want = sums_reference(ring[:, take], theta[take])
+    np.testing.assert_allclose(ring_sums(ring, theta, start, n), want, rtol=1e-11, atol=1e-9)
+    ring[8, take[10]] = np.nan  # a NaN i_q: its minimum, maximum and sums are NaN, i_d's are not
+    got = ring_sums(ring, theta, start, n)
+    assert np.isnan(got[[2, 3, 4, 6, 8]]).all() and np.isfinite(got[[0, 1, 5, 7, 9]]).all()
+    with pytest.raises(ValueError, match="within"):
+        ring_sums(ring, theta, start, m + 1)
+
+
+def test_ltv_residuals_equal_simulate_ltv_and_numpy_across_cuts():
+    """Three runs from their own states over one stream: the same free run as simulate_ltv (bit
+    for bit), the residual rotated at libm's cos and sin of the angle, and cut into blocks (the
+    states carried) the same again."""
+    rng = np.random.default_rng(12)
+    n = 5000
+    a0 = np.array([[0.98, 0.02], [-0.02, 0.98]]) + 1e-3 * rng.standard_normal((2, 2))
+    a1 = 1e-5 * rng.standard_normal((2, 2))
+    omega, u, i_dq = rng.uniform(500.0, 700.0, n), rng.standard_normal((2, n)), rng.standard_normal((2, n))
+    theta = 7e5 + np.cumsum(omega) / FS
+    theta[3000:] += 1.0  # a jump beyond the phasor's small angle: exact again there
+    x0 = rng.standard_normal((2, 3))
+    r, x = ltv_residuals(a0, a1, omega, u, i_dq, theta, x0)
+    for j in range(3):
+        sim = simulate_ltv(a0, a1, np.append(omega, 0.0), np.append(u, np.zeros((2, 1)), axis=1), x0[:, j])
+        np.testing.assert_array_equal(x[:, j], sim[:, -1])  # the state after the last sample
+        want = (i_dq[0] - sim[0, :-1]) * np.cos(theta) - (i_dq[1] - sim[1, :-1]) * np.sin(theta)
+        np.testing.assert_allclose(r[j], want, rtol=0, atol=1e-12 * np.abs(want).max())
+    r1, x1 = ltv_residuals(a0, a1, omega[:1234], u[:, :1234], i_dq[:, :1234], theta[:1234], x0)
+    r2, x2 = ltv_residuals(a0, a1, omega[1234:], u[:, 1234:], i_dq[:, 1234:], theta[1234:], x1)
+    np.testing.assert_array_equal(x2, x)
+    np.testing.assert_allclose(np.hstack((r1, r2)), r, rtol=0, atol=1e-12 * np.abs(r).max())
+    with pytest.raises(ValueError, match="at most"):
+        ltv_residuals(a0, a1, omega, u, i_dq, theta, np.zeros((2, kernels.LTV_RUNS + 1)))
 
 
 @pytest.mark.parametrize("bad", ["x_abc", "u", "par"])
