@@ -172,10 +172,15 @@ class DQModel:
         a0, a1 = self.state_matrices()
         return (a0, a1) if self.discretisation == "euler" else zoh2_matrices(a0, a1, omega_e)
 
-    def psi_input(self, sig: Signals) -> np.ndarray:
-        """u'(k) (2, N) of +1 Wb of magnet flux (the back-EMF column w on q, coefficient -T_s/L_q per Wb)."""
+    def psi_input(self, sig: Signals, on_q: bool = False) -> np.ndarray:
+        """u'(k) (2, N) of +1 Wb of magnet flux (the back-EMF column w on q, coefficient -T_s/L_q per
+        Wb); ``on_q``: of +1 Wb along the frame's q axis instead (back-EMF -omega_e psi_q on d, a frame
+        that is not the rotor's: :func:`agent.workbench.fitting.frame_flux_input`)."""
         u = np.zeros((2, sig.n))
-        u[1] = -self.theta_q[2] * sig.omega_e  # theta_q[2] = T_s/L_q in both forms
+        if on_q:
+            u[0] = self.theta_d[2] * sig.omega_e  # theta_d[2] = T_s/L_d in both forms
+        else:
+            u[1] = -self.theta_q[2] * sig.omega_e  # theta_q[2] = T_s/L_q in both forms
         if self.discretisation == "euler":
             return u
         a0, a1 = self.state_matrices()

@@ -35,7 +35,7 @@ from agent.effects import get as get_effect
 from agent.errors import InputError
 from agent.evidence import effective_size
 from agent.workbench.excitation import dynamics, no_dynamics_note
-from agent.workbench.fitting import NONLINEAR, Prepared, Refit, fit_cost, heldout, pinned_keys, refit
+from agent.workbench.fitting import NONLINEAR, Prepared, Refit, fit_cost, heldout, onto_rotor, pinned_keys, refit
 
 ALPHA = 0.01  #: family-wise significance level of the test over records
 MIN_RECORDS = 3  #: records needed for the test
@@ -329,6 +329,8 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
     dyn = dynamics(preps, prior)
     if dyn["quiet"]:
         return _unranked(baseline, preps, before, None, dyn, no_dynamics_note(dyn), t0)
+    if "Lq" in prior:  # the current vector's frames (no encoder) onto the rotor's, by an identified L_q
+        preps = onto_rotor(preps, prior["Lq"][0], prior.get("Rs", (0.0,))[0])
     ctrl = control(model, preps, base, prior=prior)
     h_ctrl = heldout(ctrl.model, preps)
     if not h_ctrl["stable"]:
