@@ -46,6 +46,8 @@ IDENTIFIABLE_REL = 0.10  #: the data alone must pin a parameter to this relative
 VAGUE_SD = 1.0  #: log-sd (a factor e) of the vague prior where the nameplate says nothing
 COLLINEAR = 0.8  #: |correlation| of two unidentifiable parameters reported as one collinear group
 CONFLICT_Z = 4.0  #: the records pull a parameter this many nameplate sds away: they disagree
+ENDOGENOUS_Z = 3.0  #: the compensated dynamics regression is rejected this many sds from the instrumented one
+IV_LAG = 2  #: samples between a regression's instruments and its regressors (a current window's filter reaches one)
 Z95 = 1.959964
 
 
@@ -59,6 +61,8 @@ class Observation:
     #: meat X^T diag(e^2) X of their sandwich covariance
     ts: float
     encoder: bool = True  #: the frame is the encoder's (else a PLL's, whose d axis carries the speed ripple)
+    iv: list = field(default_factory=list)  #: per axis (Z^T X, Z^T y, Z^T diag(e^2) Z): the same regression
+    #: with the previous sample's regressors as instruments (:func:`_dynamics`)
 
 
 def zero_sequence_sigma(x_abc: np.ndarray) -> float:
@@ -94,7 +98,7 @@ def observe(sig: Signals, encoder: bool = True) -> Observation:
         se.append(np.hypot(spread, V_ACCURACY * abs(v.mean()) + V_FLOOR))
     sv = zero_sequence_sigma(sig.v_abc) if sig.v_abc is not None else 0.0
     si = zero_sequence_sigma(sig.i_abc) if sig.i_abc is not None else 0.0
-    gram = []
+    gram, iv = [], []
     for axis in (0, 1):
         other = 1 - axis
         cols = [sig.i_dq[axis, :-1], sig.v_dq[axis, :-1], w[:-1] * sig.i_dq[other, :-1]]
@@ -114,7 +118,12 @@ def observe(sig: Signals, encoder: bool = True) -> Observation:
         e = y - x @ theta
         xe = x * e[:, None]
         gram.append((g, h, xe.T @ xe))
-    return Observation(means, np.array(se), gram, sig.ts, encoder)
+        z, x1, y1 = x[:-IV_LAG], x[IV_LAG:], y[IV_LAG:]  # instruments: the regressors IV_LAG samples back
+        zx, zy = z.T @ x1, z.T @ y1
+        theta_iv = np.linalg.lstsq(zx, zy, rcond=None)[0]
+        ze = z * (y1 - x1 @ theta_iv)[:, None]
+        iv.append((zx, zy, ze.T @ ze))
+    return Observation(means, np.array(se), gram, sig.ts, encoder, iv)
 
 
 @dataclass
@@ -162,13 +171,15 @@ class Estimate:
     problems: list = field(default_factory=list)  #: reasons to refuse the estimate (nonphysical)
     priors: dict = field(default_factory=dict)
     conflicts: dict = field(default_factory=dict)  #: name -> warning: a nameplate value the records contradict (dropped)
+    instrumented: list = field(default_factory=list)  #: "Ld", "Lq": read by the instrumented regression
+    #: (the drive's voltage answers the current's noise within the sample: :func:`_dynamics`)
 
     def to_json(self) -> dict:
         return {"values": self.values, "ci95": {k: list(v) if v else None for k, v in self.ci95.items()},
                 "rel_sd": self.rel_sd, "data_rel_sd": {k: (None if not np.isfinite(v) else v)
                                                         for k, v in self.data_rel_sd.items()},
                 "determined_by": self.determined_by, "unidentifiable": self.unidentifiable,
-                "problems": self.problems, "conflicts": self.conflicts,
+                "problems": self.problems, "conflicts": self.conflicts, "instrumented": self.instrumented,
                 "priors": {k: {"value": p.value, "rel_sd": p.rel_sd, "source": p.source} for k, p in self.priors.items()}}
 
 
@@ -191,33 +202,60 @@ def _data_residual(obs: list[Observation], dyn: list[tuple[float, float]]):
     return residual
 
 
-def _dynamics(obs: list[Observation]) -> list[tuple[float, float]]:
-    """Per axis (L_x in H, sd of log L_x) from the pooled, noise-compensated dynamics regressions
+def _pooled(parts: list, p: int):
+    """(A, c, M) of per-record normal equations (A_j, c_j, M_j) with ``p`` shared columns and one
+    intercept per record (the last column of each)."""
+    size = p + len(parts)
+    a, c, meat = np.zeros((size, size)), np.zeros(size), np.zeros((size, size))
+    for j, (aj, cj, mj) in enumerate(parts):
+        idx = list(range(p)) + [p + j]
+        a[np.ix_(idx, idx)] += aj
+        meat[np.ix_(idx, idx)] += mj
+        c[idx] += cj
+    return a, c, meat
+
+
+def _dynamics(obs: list[Observation]) -> list[tuple[float, float, bool]]:
+    """Per axis (L_x in H, sd of log L_x, whether the instrumented regression stood) from the pooled, noise-compensated dynamics regressions
     (shared slopes, one intercept per record); (nan, inf) when the voltage does not excite the
     current's response. The covariance is the sandwich G^-1 M G^-1: the compensated estimator's
-    residual carries the regressors' own noise, which the textbook s^2 G^-1 would leave out."""
+    residual carries the regressors' own noise, which the textbook s^2 G^-1 would leave out.
+
+    The compensation assumes the voltage does not answer the current's noise within the sample.
+    A controller that acts on the sample it has just taken (no computation delay) puts -K_p n(k)
+    into v(k), and the regression reads T_s/L minus about 1/K_p (L_d 3.5x high, L_q 0.6x on a
+    family drive). The same regression with the previous sample's regressors as instruments is
+    free of that (its noise is white, so nothing at k-1 correlates with it) but weaker; where the
+    two differ by more than ``ENDOGENOUS_Z`` of the instrumented one's standard error, the
+    instrumented one stands, with its wider uncertainty (on a drive without the loop's broadband
+    excitation, so wide that L_x is reported as not identifiable)."""
     out = []
     for axis in (0, 1):
-        parts = [o.gram[axis] for o in obs if o.encoder or axis == 1]  # L_d: encoder frames only
-        if not parts:
-            out.append((np.nan, np.inf))
+        use = [o for o in obs if o.encoder or axis == 1]  # L_d: encoder frames only
+        if not use:
+            out.append((np.nan, np.inf, False))
             continue
-        p = parts[0][0].shape[0] - 1
-        size = p + len(parts)
-        g, h, meat = np.zeros((size, size)), np.zeros(size), np.zeros((size, size))
-        for j, (gj, hj, mj) in enumerate(parts):
-            idx = list(range(p)) + [p + j]
-            g[np.ix_(idx, idx)] += gj
-            meat[np.ix_(idx, idx)] += mj
-            h[idx] += hj
+        p = use[0].gram[axis][0].shape[0] - 1
+        g, h, meat = _pooled([o.gram[axis] for o in use], p)
         scale = np.sqrt(np.abs(np.diag(g))) + 1e-300
         gi = np.linalg.pinv(g / np.outer(scale, scale), rcond=1e-12) / np.outer(scale, scale)
         b = (gi @ h)[1]  # T_s / L_x
         var_b = (gi @ meat @ gi)[1, 1]
+        if all(o.iv for o in use):
+            zx, zy, zmeat = _pooled([o.iv[axis] for o in use], p)
+            with np.errstate(all="ignore"):
+                zi = np.linalg.pinv(zx, rcond=1e-12)
+                b_iv, var_iv = (zi @ zy)[1], (zi @ zmeat @ zi.T)[1, 1]
+            switched = bool(np.isfinite(b_iv) and np.isfinite(var_iv)
+                            and abs(b - b_iv) > ENDOGENOUS_Z * np.sqrt(max(var_iv, 0.0)))
+            if switched:
+                b, var_b = b_iv, var_iv
+        else:
+            switched = False
         if not (np.isfinite(b) and b > 0 and np.isfinite(var_b)):
-            out.append((np.nan, np.inf))
+            out.append((np.nan, np.inf, switched))
             continue
-        out.append((obs[0].ts / b, float(np.sqrt(max(var_b, 0.0)) / b)))
+        out.append((obs[0].ts / b, float(np.sqrt(max(var_b, 0.0)) / b), switched))
     return out
 
 
@@ -310,8 +348,15 @@ def _estimate(obs: list[Observation], profile: DriveProfile, priors: dict[str, P
         close = [k for k in range(4) if k == j or abs(corr[j, k]) > COLLINEAR]
         names = [NAMES[k] for k in close if weak[k]]
         if names not in [g["parameters"] for g in groups]:
-            groups.append({"parameters": names, "reason": _collinear_reason([NAMES[k] for k in close], means,
-                                                                           any(o.encoder for o in obs)),
+            reason = _collinear_reason([NAMES[k] for k in close], means, any(o.encoder for o in obs))
+        inductances = [n for n in names if n in ("Ld", "Lq") and dyn[("Ld", "Lq").index(n)][2]]
+        if inductances:
+            reason = (f"{' and '.join(inductances)}: the drive's voltage answers the current's noise within the "
+                      f"sample (a controller without computation delay), so the current loop's broadband voltage "
+                      f"does not read the inductance; records with current-reference steps, or the nameplate's "
+                      f"{' and '.join(n.lower() + '_h' for n in inductances)}; " + reason)
+        if names not in [g["parameters"] for g in groups]:
+            groups.append({"parameters": names, "reason": reason,
                            "correlated": {NAMES[k]: float(data_sd[k]) for k in close if not weak[k]},
                            "from_nameplate": all(n in priors for n in names)})
     data_sd = np.where(weak, np.inf, data_sd)
@@ -327,7 +372,8 @@ def _estimate(obs: list[Observation], profile: DriveProfile, priors: dict[str, P
         ci[name] = (float(np.exp(z[j] - Z95 * post[j])), float(np.exp(z[j] + Z95 * post[j])))
         rel[name] = float(post[j])
     return Estimate(values, ci, rel, {n: float(data_sd[j]) for j, n in enumerate(NAMES)}, by, groups,
-                    _problems(z, means, profile), dict(priors), _conflicts(z, z0, sd, priors))
+                    _problems(z, means, profile), dict(priors), _conflicts(z, z0, sd, priors),
+                    [n for n, d in zip(("Ld", "Lq"), dyn) if d[2]])
 
 
 def _jacobian(fun, z: np.ndarray, h: float = 1e-6) -> np.ndarray:
