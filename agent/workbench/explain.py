@@ -99,13 +99,17 @@ PRIOR_FLOOR = {"Ld": 0.05, "Lq": 0.05, "Rs": 0.2, "psi_m": 0.02}  #: relative sd
 
 def physical_prior(baseline) -> dict:
     """{"Ld"|"Lq"|"Rs"|"psi_m": (value, relative sd)} from the baseline's physical estimate (identify, with
-    the nameplate where the profile has one), for the refits' base values; identified values only."""
+    the nameplate where the profile has one), for the refits' base values; identified values only.
+    ``"instrumented"``: the inductances identify read by the instrumented regression (the drive's
+    voltage answers the current's noise within the sample), which the refits' one-step reads so too."""
     est = baseline.physical or {}
     out = {}
     for key, floor in PRIOR_FLOOR.items():
         v, rel = (est.get("values") or {}).get(key), (est.get("rel_sd") or {}).get(key)
         if v is not None and rel is not None and np.isfinite(v) and v > 0 and np.isfinite(rel):
             out[key] = (float(v), max(float(rel), floor))
+    if est.get("instrumented"):
+        out["instrumented"] = tuple(est["instrumented"])
     return out
 
 

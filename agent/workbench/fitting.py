@@ -57,7 +57,7 @@ from agent.errors import InputError
 from agent.identify import operating_point, record_signals
 from agent.sanity import not_running
 from agent.kernels import simulate_ltv
-from agent.physical import zero_sequence_sigma
+from agent.physical import ENDOGENOUS_Z, IV_LAG, zero_sequence_sigma
 from agent.model import BASE_TERMS, DQModel, Signals, lumped_params, regressors, zoh2_input, zoh2_matrices
 from agent.profile import DriveProfile
 from agent.records import Record
@@ -305,7 +305,7 @@ def _block_info(g: np.ndarray, cols: slice, s2: float, shift: np.ndarray) -> np.
     return info - np.outer(i_d, i_d) / (1.0 + d @ i_d)
 
 
-def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None) -> OneStep:
+def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None, instrument=()) -> OneStep:
     """L_d, L_q, R_s,d and the parameters of the voltage effects that act within a record, from the
     one-step regression of the ``speed`` form pooled over the fit segments and compensated for the
     channels' white noise.
@@ -344,6 +344,7 @@ def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None) -
             raw = np.array([True] * len(base) + [e.raw for e in effs for _ in e.params])
             m = n + n_out + n_rec
             g, h, yy, cnt, gn = np.zeros((m, m)), np.zeros(m), 0.0, 0, np.zeros((m, m))
+            rows = []  # (x, y) per segment, for the instrumented check
             for j, (s, (noisy, quiet)) in enumerate(zip(segs, noise)):
                 x = np.zeros((s.n - 1, m))
                 x[:, :n] = columns(axis, len(base), terms_v, s)[:-1]
@@ -357,6 +358,7 @@ def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None) -
                 xn = (columns(axis, len(base), terms_v, noisy)
                       - columns(axis, len(base), terms_v, quiet))[:-1]  # columns are affine in v, i
                 xn[:, ~raw] = 0.0  # columns from the smoothed current carry no white noise
+                rows.append((x, y))
                 g += x.T @ x
                 gn[:n, :n] += xn.T @ xn
                 g[:n, :n] -= xn.T @ xn
@@ -377,6 +379,11 @@ def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None) -
             # the regressors barely vary beyond their noise (smooth closed-loop data) it dominates
             d_theta = gi @ (NOISE_LEVEL_REL * gn @ theta)
             cov = s2 * gi + np.outer(d_theta, d_theta)
+            iv = (instrumented(rows, theta[V_COLUMN], force=("Ld", "Lq")[axis] in instrument)
+                  if all(p.encoder for p in preps) else None)  # as identify: encoder frames only
+            if iv is not None:  # the voltage answers the current's noise within the sample: the instrumented stands
+                theta, cov = iv
+                d_theta = np.zeros(m)
             ts = preps[0].sig.ts
             b = max(theta[2], ts / L_MAX_H) if np.isfinite(theta[2]) else ts / L_MAX_H  # column 2: v_d / v_q, T_s / L
             ls.append(ts / b)
@@ -389,7 +396,10 @@ def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None) -
             est.append(theta[cols] / b)
             # the residual holds at least the current channel's noise at k+1 (the compensation can push it below)
             s2_floor = float(np.mean([p.noise_var[1] for p in preps]))
-            var.append(_block_info(g, cols, max(s2, s2_floor), d_theta) * b ** 2)
+            if iv is None:
+                var.append(_block_info(g, cols, max(s2, s2_floor), d_theta) * b ** 2)
+            else:  # the information of the effects' columns, the others estimated alongside
+                var.append(np.linalg.pinv(cov[cols, cols], rcond=1e-12, hermitian=True) * b ** 2)
             new_coef.append((float(theta[0]), float(theta[1])))  # i_x and w * i_other: the state matrix's row
         coef = new_coef
     layout, j = {}, 0
@@ -401,6 +411,36 @@ def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None) -
                    varies)
     step.values, step.se = step.rescaled(step.ld, step.lq, bounds or effect_bounds(layout, None), typical_sizes(effs))
     return step
+
+
+def instrumented(rows: list[tuple[np.ndarray, np.ndarray]], b: float, force: bool = False):
+    """(theta, covariance) of the one-step regression y = X theta with the regressors ``IV_LAG``
+    samples back as instruments (``rows``: (X, y) per segment), where its voltage coefficient lies
+    more than ``ENDOGENOUS_Z`` of its standard error from the compensated regression's ``b``, or
+    with ``force`` (identify found it so on the healthy records: a missing effect's error inflates
+    the instrumented one's standard error here); else None. A controller that acts on the sample it
+    has just taken puts the current's noise into that sample's voltage, which the compensation does
+    not remove (:func:`agent.physical._dynamics` explains it and has the same check)."""
+    m = rows[0][0].shape[1]
+    zx, zy = np.zeros((m, m)), np.zeros(m)
+    for x, y in rows:
+        zx += x[:-IV_LAG].T @ x[IV_LAG:]
+        zy += x[:-IV_LAG].T @ y[IV_LAG:]
+    scale = np.sqrt(np.abs(np.diag(zx))) + 1e-30
+    with np.errstate(all="ignore"):
+        zi = np.linalg.pinv(zx / np.outer(scale, scale), rcond=1e-12) / np.outer(scale, scale)
+        theta = zi @ zy
+        meat = np.zeros((m, m))
+        for x, y in rows:
+            ze = x[:-IV_LAG] * (y[IV_LAG:] - x[IV_LAG:] @ theta)[:, None]
+            meat += ze.T @ ze
+        cov = zi @ meat @ zi.T
+    sd = float(np.sqrt(max(cov[V_COLUMN, V_COLUMN], 0.0)))
+    if not (np.all(np.isfinite(theta)) and np.isfinite(sd)):
+        return None
+    if not force and abs(theta[V_COLUMN] - b) <= ENDOGENOUS_Z * sd:
+        return None
+    return theta, cov
 
 
 def typical_sizes(effs) -> dict:
@@ -569,7 +609,7 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
     ts = preps[0].sig.ts
     w_op = 2 * np.pi * fe_hz
     bounds = effect_bounds(effect_ids, base)
-    step = one_step(preps, effect_ids, bounds)
+    step = one_step(preps, effect_ids, bounds, instrument=(prior or {}).get("instrumented", ()))
     ld, lq, rs_d = with_prior(step, prior)
     step.values, step.se = step.rescaled(ld, lq, bounds, typical_sizes(map(get_effect, effect_ids)))
     # R_s,d: with a nameplate R_s, the one-step's combined with it; else the free run fits it where
