@@ -58,6 +58,10 @@ class Sampling:
     #: the current ADC's averaging window, samples, centred on the sample instant (0: a point sample
     #: at the carrier's centre; 1: a sigma-delta or oversampling ADC averaging the whole interval)
     current_window_samples: float | None = None
+    #: the drive's current reference where known: "id0" (i_d = 0: the current vector on the rotor's q
+    #: axis) or "mtpa" (it leads q by the current angle, which grows with the load); without an
+    #: encoder the workbench turns the current's frame onto the rotor's only for "mtpa"
+    current_reference: str | None = None
 
 
 @dataclass(frozen=True)
@@ -187,6 +191,8 @@ def parse_profile(data: dict, source: str = "<profile>") -> DriveProfile:
         parts[section] = _build(cls, table, section, source)
     if parts["sampling"].voltage_source not in ("measured", "reference"):
         raise InputError("key 'sampling.voltage_source' must be \"measured\" or \"reference\"", source=source)
+    if parts["sampling"].current_reference not in (None, "id0", "mtpa"):
+        raise InputError("key 'sampling.current_reference' must be \"id0\" or \"mtpa\"", source=source)
     for key, (lo, hi) in VOLTAGE_PATH_RANGES.items():
         value = getattr(parts["sampling"], key)
         if value is not None and not lo <= value <= hi:

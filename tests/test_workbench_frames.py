@@ -7,6 +7,7 @@ simulator's own rotor angle and effect values are the reference."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 import pytest
@@ -52,10 +53,16 @@ def test_an_id0_current_frame_is_kept():
     assert abs(_offset_deg(prep[0].sig, rec.theta_e)) < 0.05
 
 
-def _explained(seed: int, effect: str | None):
+@functools.lru_cache(maxsize=None)
+def _baseline(seed: int):
     drive = draw_drive(seed)
     prof = profile(drive, timing=True)
-    base = identify_baseline([simulate(drive, {}, 80.0, 1.0, seed=100 + j) for j in range(4)], prof, window_s=0.5)
+    return drive, prof, identify_baseline([simulate(drive, {}, 80.0, 1.0, seed=100 + j) for j in range(4)], prof,
+                                          window_s=0.5)
+
+
+def _explained(seed: int, effect: str | None):
+    drive, prof, base = _baseline(seed)
     hidden = {effect: draw_effect(drive, effect, seed)} if effect else {}
     recs = [simulate(drive, hidden, load, 1.0, seed=200 + j) for j, load in enumerate(LOADS)]
     return drive, hidden, explain(base, prepare(recs, prof))

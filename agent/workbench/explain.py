@@ -333,7 +333,10 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
     dyn = dynamics(preps, prior)
     if dyn["quiet"]:
         return _unranked(baseline, preps, before, None, dyn, no_dynamics_note(dyn), t0)
-    if "Lq" in prior:  # the current vector's frames (no encoder) onto the rotor's, by an identified L_q
+    if baseline.profile.sampling.current_reference == "mtpa" and "Lq" in prior:
+        # the current vector's frames (no encoder) onto the rotor's, by an identified L_q; only where
+        # the profile says the current leads the rotor's q axis: a hidden effect that moves L_q with the
+        # load (saturation) reads as a current angle (the rig's i_d = 0 records turned by up to 10 degrees)
         preps = onto_rotor(preps, prior["Lq"][0], prior.get("Rs", (0.0,))[0])
     ctrl = control(model, preps, base, prior=prior)
     h_ctrl = heldout(ctrl.model, preps)
