@@ -245,7 +245,8 @@ class BaselineBuilder:
         fit = fit_record(sig, self.profile, self.settings["form"] if m is None else m.form, extra,
                          prefilter_hz=self.settings["prefilter_hz"], plausible=False)
         self.fits.append(fit)
-        self.observations.append(observe(corrected(sig, self.profile), encoder))
+        self.observations.append(observe(corrected(sig, self.profile), encoder,
+                                         instruments=not self.profile.sampling.current_window_samples))
         self.sources.append(source)
         return fit
 

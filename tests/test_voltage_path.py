@@ -126,7 +126,7 @@ def test_a_current_averaged_over_its_interval_obeys_the_model_with_the_window_eq
 def test_identify_reads_the_inductances_through_the_stated_path_and_window():
     """Family drives whose timing moves identify's L_d by 20-145 % (a DAQ filter's lag behind a dq
     hold; a current averaged over its interval): with the profile's timing within 5 %."""
-    for seed in (20043, 20046, 20030):
+    for seed in (20043, 20046, 20024):
         drive = draw_drive(seed)
         recs = [simulate(drive, {}, 80.0, 1.0, seed=100 + j) for j in range(4)]
         for timing in (False, True):

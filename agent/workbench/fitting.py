@@ -57,7 +57,7 @@ from agent.errors import InputError
 from agent.identify import operating_point, record_signals
 from agent.sanity import not_running
 from agent.kernels import simulate_ltv
-from agent.physical import ENDOGENOUS_Z, IV_LAG, zero_sequence_sigma
+from agent.physical import IV_LAG, endogenous, zero_sequence_sigma
 from agent.model import BASE_TERMS, DQModel, Signals, lumped_params, regressors, zoh2_input, zoh2_matrices
 from agent.profile import DriveProfile
 from agent.records import Record
@@ -137,7 +137,8 @@ def prepare(records: list[Record], profile: DriveProfile, max_fit_s: float = 0.5
         sig = corrected(sig, profile)
         length = min(int(FIT_FRACTION * sig.n), int(max_fit_s * rate))
         start = fit_start(sig, length)
-        meta = {**rec.meta, **({"voltage_path": tuple(path)} if path is not None else {})}  # what was applied
+        meta = {**rec.meta, **({"voltage_path": tuple(path)} if path is not None else {}),  # what was applied
+                "current_window": float(profile.sampling.current_window_samples or 0.0)}
         out.append(Prepared(rec.source, sig, operating_point(sig, profile), start + length, meta, start,
                             encoder=rec.theta_e is not None))
     return out
@@ -380,7 +381,8 @@ def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None, i
             d_theta = gi @ (NOISE_LEVEL_REL * gn @ theta)
             cov = s2 * gi + np.outer(d_theta, d_theta)
             iv = (instrumented(rows, theta[V_COLUMN], force=("Ld", "Lq")[axis] in instrument)
-                  if all(p.encoder for p in preps) else None)  # as identify: encoder frames only
+                  if all(p.encoder and not p.meta.get("current_window") for p in preps)
+                  else None)  # as identify: encoder frames and point samples only
             if iv is not None:  # the voltage answers the current's noise within the sample: the instrumented stands
                 theta, cov = iv
                 d_theta = np.zeros(m)
@@ -415,8 +417,8 @@ def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None, i
 
 def instrumented(rows: list[tuple[np.ndarray, np.ndarray]], b: float, force: bool = False):
     """(theta, covariance) of the one-step regression y = X theta with the regressors ``IV_LAG``
-    samples back as instruments (``rows``: (X, y) per segment), where its voltage coefficient lies
-    more than ``ENDOGENOUS_Z`` of its standard error from the compensated regression's ``b``, or
+    samples back as instruments (``rows``: (X, y) per segment), where its voltage coefficient
+    rejects the compensated regression's ``b`` (:func:`agent.physical.endogenous`), or
     with ``force`` (identify found it so on the healthy records: a missing effect's error inflates
     the instrumented one's standard error here); else None. A controller that acts on the sample it
     has just taken puts the current's noise into that sample's voltage, which the compensation does
@@ -438,7 +440,7 @@ def instrumented(rows: list[tuple[np.ndarray, np.ndarray]], b: float, force: boo
     sd = float(np.sqrt(max(cov[V_COLUMN, V_COLUMN], 0.0)))
     if not (np.all(np.isfinite(theta)) and np.isfinite(sd)):
         return None
-    if not force and abs(theta[V_COLUMN] - b) <= ENDOGENOUS_Z * sd:
+    if not force and not endogenous(b, theta[V_COLUMN], sd ** 2):
         return None
     return theta, cov
 
