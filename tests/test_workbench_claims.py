@@ -428,3 +428,22 @@ def test_noise_sse_counts_the_free_runs_build_up():
                                  sig.omega_e, sig.ts, sig.pole_pairs)
         sums.append(np.sum((model.simulate(noisy) - y0)[:, :n] ** 2))
     assert expected == pytest.approx(np.mean(sums), rel=0.12)  # 200 draws: about 2 sd
+
+
+def test_a_claim_is_withheld_where_an_unpinned_candidate_fits_clearly_better():
+    """The best significant candidate is not claimed where another, not identifiable or at a bound,
+    leaves a held-out NRMSE below 0.8 of its own (the records cannot tell them apart); at 0.9 of it,
+    or where the better one is itself claimable, the claim stands."""
+    from agent.workbench.explain import _better_unclaimable
+
+    def row(effect, nrmse, identifiable=True, at_bound=False):
+        return {"effect": effect, "nrmse_after": nrmse, "identifiable": identifiable, "at_bound": at_bound,
+                "explained_fraction": 0.5}
+
+    first = row("flux_harmonics", 0.010)
+    rival = row("inverter_deadtime", 0.0063, identifiable=False)
+    assert _better_unclaimable([first, rival], first) is rival
+    assert _better_unclaimable([first, row("inverter_deadtime", 0.0063, at_bound=True)], first)["effect"] == "inverter_deadtime"
+    assert _better_unclaimable([first, row("inverter_deadtime", 0.009, identifiable=False)], first) is None
+    assert _better_unclaimable([first, row("inverter_deadtime", 0.0063)], first) is None
+    assert _better_unclaimable([first, rival], None) is None
