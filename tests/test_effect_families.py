@@ -196,4 +196,5 @@ def test_a_drive_holding_dq_fits_to_its_noise_floor_once_the_hold_is_known():
     floor = heldout(r.model, preps)["noise_floor"]["total"]
     p = fig["params"]["voltage_delay"]
     assert p["advance_samples"] == pytest.approx(0.5, abs=0.15) and p["delay_samples"] == pytest.approx(0.0, abs=0.1), p
-    assert fig["nrmse_after"] <= floor and fig["nrmse_after"] <= 0.3 * fig["nrmse_control"], (fig, floor)
+    # the control in the speed form is already within 1.4x the floor (in the lumped form it was above 3x the refit)
+    assert fig["nrmse_after"] <= floor and fig["nrmse_after"] <= 0.6 * fig["nrmse_control"], (fig, floor)
