@@ -951,7 +951,7 @@ def _with_phases(meas: np.ndarray, pred: np.ndarray, theta: np.ndarray, floor: n
     ref = np.sqrt(np.mean(np.sum(meas ** 2, axis=0)))
     mse = np.maximum(np.mean(err ** 2, axis=1) - f, 0.0)
     out = {"d": float(np.sqrt(mse[0]) / ref), "q": float(np.sqrt(mse[1]) / ref), "total": float(np.sqrt(mse.sum()) / ref)}
-    ref_abc = np.sqrt(np.mean(dq_to_abc(meas, theta) ** 2))
+    ref_abc = np.sqrt(0.5 * np.mean(np.sum(meas ** 2, axis=0)))  # a^2 + b^2 + c^2 = 3/2 (d^2 + q^2), no zero sequence
     mse_abc = np.maximum(np.mean(dq_to_abc(err, theta) ** 2, axis=1) - 0.5 * f.sum(), 0.0)
     out.update(zip("abc", (np.sqrt(mse_abc) / ref_abc).tolist()))
     return out
