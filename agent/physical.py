@@ -48,7 +48,7 @@ COLLINEAR = 0.8  #: |correlation| of two unidentifiable parameters reported as o
 CONFLICT_Z = 4.0  #: the records pull a parameter this many nameplate sds away: they disagree
 ENDOGENOUS_Z = 3.0  #: the compensated dynamics regression is rejected this many sds from the instrumented one
 ENDOGENOUS_REL = 0.1  #: ... and by more than this share of it
-IV_LAG = 2  #: samples between a regression's instruments and its regressors (a current window's filter reaches one)
+IV_LAG = 2  #: samples between a regression's instruments and its regressors (one more than white noise needs)
 Z95 = 1.959964
 
 
