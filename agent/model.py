@@ -175,7 +175,7 @@ class DQModel:
     def psi_input(self, sig: Signals, on_q: bool = False) -> np.ndarray:
         """u'(k) (2, N) of +1 Wb of magnet flux (the back-EMF column w on q, coefficient -T_s/L_q per
         Wb); ``on_q``: of +1 Wb along the frame's q axis instead (back-EMF -omega_e psi_q on d, a frame
-        that is not the rotor's: :func:`agent.workbench.fitting.frame_flux_input`)."""
+        that is not the rotor's: :attr:`agent.workbench.fitting.Prepared.turned`)."""
         u = np.zeros((2, sig.n))
         if on_q:
             u[0] = self.theta_d[2] * sig.omega_e  # theta_d[2] = T_s/L_d in both forms

@@ -204,6 +204,14 @@ def _data_residual(obs: list[Observation], dyn: list[tuple[float, float]]):
     return residual
 
 
+def scaled_pinv(a: np.ndarray) -> np.ndarray:
+    """Pseudo-inverse of a normal-equation matrix ``a`` whose columns differ by orders of magnitude
+    (A, V, rad/s): equilibrated by sqrt|diag| on both sides first, so that rcond judges the
+    columns' correlation, not their units."""
+    scale = np.sqrt(np.abs(np.diag(a))) + 1e-300
+    return np.linalg.pinv(a / np.outer(scale, scale), rcond=1e-12) / np.outer(scale, scale)
+
+
 def _pooled(parts: list, p: int):
     """(A, c, M) of per-record normal equations (A_j, c_j, M_j) with ``p`` shared columns and one
     intercept per record (the last column of each)."""
@@ -255,14 +263,13 @@ def _dynamics(obs: list[Observation]) -> list[tuple[float, float, bool]]:
             continue
         p = use[0].gram[axis][0].shape[0] - 1
         g, h, meat = _pooled([o.gram[axis] for o in use], p)
-        scale = np.sqrt(np.abs(np.diag(g))) + 1e-300
-        gi = np.linalg.pinv(g / np.outer(scale, scale), rcond=1e-12) / np.outer(scale, scale)
+        gi = scaled_pinv(g)
         b = (gi @ h)[1]  # T_s / L_x
         var_b = (gi @ meat @ gi)[1, 1]
         if all(o.iv and o.encoder for o in use):  # a PLL's frame follows the current: its errors are no instruments
             zx, zy, zmeat = _pooled([o.iv[axis] for o in use], p)
             with np.errstate(all="ignore"):
-                zi = np.linalg.pinv(zx, rcond=1e-12)
+                zi = scaled_pinv(zx)
                 b_iv, var_iv = (zi @ zy)[1], (zi @ zmeat @ zi.T)[1, 1]
             switched = endogenous(b, b_iv, var_iv)
             if switched:

@@ -67,7 +67,6 @@ LEARNING_SHIFT_MIN = 20  #: stretches from which the check is made (fewer: too l
 #: rows of the signal ring (agent.kernels.block_rows writes them): phase voltages and currents,
 #: speed, dq signals, power; stored as float32 (24-bit mantissa, above any ADC's resolution). The
 #: angle has a float64 ring of its own: unwrapped up to _THETA_LIMIT, float32 would resolve it to 0.06 rad.
-_ROWS = ROWS
 RING_DTYPE = np.float32
 
 
@@ -88,7 +87,7 @@ def ring_bytes(rate_hz: float, span_s: float, window_s: float | None = None, hop
     """Bytes of one drive's signal ring: a span of the float32 rows and the float64 angle; given
     ``window_s`` and ``hop_s``, also the open windows' residuals (:func:`residual_bytes`)."""
     extra = residual_bytes(rate_hz, window_s, hop_s) if window_s and hop_s else 0
-    return int(round(span_s * rate_hz)) * (len(_ROWS) * np.dtype(RING_DTYPE).itemsize + 8) + extra
+    return int(round(span_s * rate_hz)) * (len(ROWS) * np.dtype(RING_DTYPE).itemsize + 8) + extra
 
 
 @dataclass(frozen=True)
@@ -115,7 +114,7 @@ class HopSums:
 
 
 def hop_sums(ring: np.ndarray, theta: np.ndarray, start: int, n: int) -> HopSums:
-    """The :class:`HopSums` of ``n`` samples of the signal ring (rows :data:`_ROWS`, angle
+    """The :class:`HopSums` of ``n`` samples of the signal ring (rows :data:`ROWS`, angle
     ``theta``) from column ``start`` (:func:`agent.kernels.ring_sums`)."""
     s = ring_sums(ring, theta, start, n).tolist()
     return HopSums(n, *s[:5], tuple(s[5:7]), tuple(s[7:9]), *s[9:])
@@ -192,9 +191,9 @@ class DriveMonitor:
         self.n_span = self.n_win * config.span_windows
         self.on_event = on_event or (lambda kind, detail: None)
         self._judge: str | None = None  #: the baseline that judged last (an event when it changes)
-        # circular buffer of one span, one row per signal (_ROWS) and the angle: each sample is
+        # circular buffer of one span, one row per signal (ROWS) and the angle: each sample is
         # transformed once, on arrival; a stretch is read out as float64 (:meth:`_signals`)
-        self._ring = np.zeros((len(_ROWS), self.n_span), dtype=config.ring_dtype)
+        self._ring = np.zeros((len(ROWS), self.n_span), dtype=config.ring_dtype)
         self._theta = np.zeros(self.n_span)
         self.pll = PLL(self.rate, profile.rated_fe_hz)
         self.status = DriveStatus(drive)
@@ -243,7 +242,7 @@ class DriveMonitor:
         # one C pass: the ring's rows (Clarke, Park, power), the saturation check and the angle
         # unwrapped across blocks (Signals wants it so); kept below 2^20 rad by shifting the whole
         # buffer by whole turns, which changes no cosine and no difference
-        data = np.empty((len(_ROWS), block.n), dtype=self._ring.dtype)
+        data = np.empty((len(ROWS), block.n), dtype=self._ring.dtype)
         if block.theta_e is not None:
             theta = block.theta_e
             omega = block.omega_e if block.omega_e is not None else np.gradient(np.unwrap(theta)) * self.rate
@@ -312,12 +311,12 @@ class DriveMonitor:
             return None
         start = (self._write - back - n) % self.n_span
         first = min(n, self.n_span - start)
-        lo, hi = (0, len(_ROWS)) if phases else (_ROWS.index("omega_e"), _ROWS.index("v_q") + 1)
+        lo, hi = (0, len(ROWS)) if phases else (ROWS.index("omega_e"), ROWS.index("v_q") + 1)
         rows, theta, ring = np.empty((hi - lo, n)), np.empty(n), self._ring[lo:hi]
         rows[:, :first], theta[:first] = ring[:, start:start + first], self._theta[start:start + first]
         rows[:, first:], theta[first:] = ring[:, :n - first], self._theta[:n - first]
-        r = lambda name: rows[_ROWS.index(name) - lo]  # noqa: E731
-        dq = rows[_ROWS.index("i_d") - lo:_ROWS.index("v_q") - lo + 1]
+        r = lambda name: rows[ROWS.index(name) - lo]  # noqa: E731
+        dq = rows[ROWS.index("i_d") - lo:ROWS.index("v_q") - lo + 1]
         if not phases:
             return Signals(dq[:2], dq[2:], theta, r("omega_e"), 1.0 / self.rate, pole_pairs=self.profile.motor.pole_pairs)
         return Signals(dq[:2], dq[2:], theta, r("omega_e"), 1.0 / self.rate, rows[3:6], rows[0:3],

@@ -133,3 +133,14 @@ def test_identify_reads_the_inductances_through_the_stated_path_and_window():
             est = identify_baseline(recs, profile(drive, timing=timing), window_s=0.5).physical["values"]
             err = abs(est["Ld"] / drive.ld_h - 1.0)
             assert (err < 0.05) if timing else (err > 0.15), (seed, timing, est["Ld"], drive.ld_h)
+
+
+def test_the_profile_states_the_current_window_and_reference_or_names_the_key():
+    prof = parse_profile(_doc(current_window_samples=1.0, current_reference="mtpa"))
+    assert (prof.sampling.current_window_samples, prof.sampling.current_reference) == (1.0, "mtpa")
+    for key, value, says in (("current_window_samples", 1.5, "outside its physical range 0..1"),
+                             ("current_window_samples", "x", "wrong type"),
+                             ("current_reference", "MTPA", 'must be "id0" or "mtpa"'),
+                             ("current_reference", 5, "wrong type")):
+        with pytest.raises(InputError, match=f"sampling.{key}' .*{says}|sampling.{key}' {says}"):
+            parse_profile(_doc(**{key: value}), source="p.toml")

@@ -105,3 +105,21 @@ def test_a_hidden_offset_found_on_a_drive_whose_controller_acts_within_the_sampl
     o = np.asarray(hidden["current_offset"]["offset_a"])
     true = np.hypot((2 * o[0] - o[1] - o[2]) / 3.0, (o[1] - o[2]) / np.sqrt(3.0))
     assert top["params"]["offset_A"] == pytest.approx(true, rel=0.2)
+
+
+def test_records_without_an_encoder_say_which_frame_they_are_judged_in():
+    """No encoder and no stated current reference: explain says the frame is the current's and names
+    the key that turns it; MTPA stated without an identified L_q: it says what is missing; i_d = 0 or
+    an encoder: nothing to say."""
+    from types import SimpleNamespace
+
+    from agent.workbench.explain import frame_warnings
+
+    def prof(ref):
+        return SimpleNamespace(sampling=SimpleNamespace(current_reference=ref))
+
+    pll, enc = [SimpleNamespace(encoder=False)], [SimpleNamespace(encoder=True)]
+    assert "sampling.current_reference" in frame_warnings(prof(None), pll, {})[0]
+    assert "nameplate.lq_h" in frame_warnings(prof("mtpa"), pll, {})[0]
+    assert frame_warnings(prof("mtpa"), pll, {"Lq": (0.01, 0.05)}) == []
+    assert frame_warnings(prof("id0"), pll, {}) == [] == frame_warnings(prof(None), enc, {})

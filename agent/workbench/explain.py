@@ -113,6 +113,22 @@ def physical_prior(baseline) -> dict:
     return out
 
 
+def frame_warnings(profile, preps: list[Prepared], prior: dict) -> list[str]:
+    """What explain says of records without an encoder angle: their frame is the current vector's,
+    the rotor's only under i_d = 0 (:func:`agent.workbench.fitting.onto_rotor`)."""
+    if all(p.encoder for p in preps):
+        return []
+    ref = profile.sampling.current_reference
+    if ref is None:
+        return ["records without an encoder angle are judged in the current vector's frame, the rotor's only "
+                "under i_d = 0: a drive under MTPA states sampling.current_reference = \"mtpa\" in its profile, "
+                "and explain turns its records onto the rotor's frame"]
+    if ref == "mtpa" and "Lq" not in prior:
+        return ["records without an encoder angle stay in the current vector's frame, which under MTPA leads the "
+                "rotor's: turning them needs L_q, which identify did not pin (give nameplate.lq_h)"]
+    return []
+
+
 def _as_refit(model, preps: list[Prepared]) -> Refit:
     """The model itself as a contender for the control: its own parameters, its fit-segment cost."""
     have = tuple(model.meta.get("effects", []))
@@ -438,6 +454,7 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
                                f"{dyn['inductance_rel_se'][key]:.0%}, with a voltage spread of "
                                f"{dyn['voltage_spread_v']:.3g} V against noise {dyn['voltage_noise_v']:.3g} V) nor the "
                                f"baseline: the refits read it from the free run")
+    doc["warnings"].extend(frame_warnings(baseline.profile, preps, prior))
     if len(preps) < MIN_RECORDS:
         doc["warnings"].append(f"{len(preps)} record(s): significance needs at least {MIN_RECORDS} "
                                f"(the test is over records); nothing is called significant")

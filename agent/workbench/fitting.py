@@ -57,7 +57,7 @@ from agent.errors import InputError
 from agent.identify import operating_point, record_signals
 from agent.sanity import not_running
 from agent.kernels import simulate_ltv
-from agent.physical import IV_LAG, endogenous, zero_sequence_sigma
+from agent.physical import IV_LAG, endogenous, scaled_pinv, zero_sequence_sigma
 from agent.model import BASE_TERMS, DQModel, Signals, lumped_params, regressors, zoh2_input, zoh2_matrices
 from agent.profile import DriveProfile
 from agent.records import Record
@@ -106,8 +106,12 @@ class Prepared:
 
     @property
     def turned(self) -> bool:
-        """A current vector's frame turned onto the rotor's (:func:`onto_rotor`): its refits keep a
-        flux along the frame's q axis for the turn's error (:func:`frame_flux_input`)."""
+        """A current vector's frame turned onto the rotor's (:func:`onto_rotor`). Its refits keep one
+        flux along the frame's q axis for the turn's error, an L_q error's share of omega_e L_q i,
+        in its steady state (on a saliency-2 MTPA drive the null control went from 1.8x to 1.3x its
+        noise floor, on another from 3.8x to 1.2x). Only there: in any other frame it would take
+        every per-record level on d, the saturation's omega_e Delta psi_q first (four of four
+        no-encoder i_d = 0 drives lost their saturation to it)."""
         return "frame_turned_rad" in self.meta
 
     @cached_property
@@ -179,10 +183,20 @@ def follow_current(sig: Signals, rec: Record) -> Signals:
     ab = CLARKE[:2] @ rec.i_abc
     angle = sig.theta_e + np.unwrap(np.angle((ab[0] + 1j * ab[1]) * np.exp(-1j * (sig.theta_e + 0.5 * np.pi))))
     line = np.polyval(np.polyfit(np.arange(sig.n), angle, 1), np.arange(sig.n))
-    fc = FRAME_CUTOFF * np.mean(sig.omega_e) / (2 * np.pi)
-    sos = butter(4, fc, fs=1.0 / sig.ts, output="sos")
-    theta = line + sosfiltfilt(sos, angle - line, padlen=min(sig.n - 1, int(5.0 / (fc * sig.ts))))  # 5 periods
+    theta = line + frame_lowpass(angle - line, sig)
     return Signals.from_abc(rec.v_abc, rec.i_abc, theta, sig.omega_e, sig.ts, sig.pole_pairs)
+
+
+def frame_lowpass(x: np.ndarray, sig: Signals) -> np.ndarray:
+    """``x`` (real or complex, (N,)) low-passed at ``FRAME_CUTOFF`` x fe of ``sig``, zero phase
+    (4th-order Butterworth forward and back, padded by five of its periods): what a frame angle
+    may follow of the current vector without taking the effects' lines at fe and above."""
+    fc = FRAME_CUTOFF * float(np.mean(np.abs(sig.omega_e))) / (2 * np.pi)
+    sos = butter(4, fc, fs=1.0 / sig.ts, output="sos")
+    pad = min(sig.n - 1, int(5.0 / (fc * sig.ts)))
+    if np.iscomplexobj(x):
+        return sosfiltfilt(sos, x.real, padlen=pad) + 1j * sosfiltfilt(sos, x.imag, padlen=pad)
+    return sosfiltfilt(sos, x, padlen=pad)
 
 
 @numba.njit(cache=True)
@@ -295,8 +309,7 @@ def _block_info(g: np.ndarray, cols: slice, s2: float, shift: np.ndarray) -> np.
     own = np.zeros(g.shape[0], dtype=bool)
     own[cols] = True
     g_oo = g[np.ix_(~own, ~own)]
-    scale = np.sqrt(np.abs(np.diag(g_oo))) + 1e-30
-    g_oo_inv = np.linalg.pinv(g_oo / np.outer(scale, scale), rcond=1e-12) / np.outer(scale, scale)
+    g_oo_inv = scaled_pinv(g_oo)
     g_eo = g[np.ix_(own, ~own)]
     info = (g[np.ix_(own, own)] - g_eo @ g_oo_inv @ g_eo.T) / max(s2, 1e-300)
     val, vec = np.linalg.eigh(0.5 * (info + info.T))
@@ -372,8 +385,7 @@ def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None, i
                     within[e_idx] += float(np.sum((c - c.mean(axis=0)) ** 2))
                     total[e_idx] += float(np.sum(c ** 2))
                     k += len(e.params)
-            scale = np.sqrt(np.abs(np.diag(g))) + 1e-30
-            gi = np.linalg.pinv(g / np.outer(scale, scale), rcond=1e-12) / np.outer(scale, scale)
+            gi = scaled_pinv(g)
             theta = gi @ h
             s2 = max(yy - 2 * theta @ h + theta @ g @ theta, 0.0) / max(cnt - m, 1)
             # the compensation's own uncertainty: the noise levels known to NOISE_LEVEL_REL; where
@@ -428,9 +440,8 @@ def instrumented(rows: list[tuple[np.ndarray, np.ndarray]], b: float, force: boo
     for x, y in rows:
         zx += x[:-IV_LAG].T @ x[IV_LAG:]
         zy += x[:-IV_LAG].T @ y[IV_LAG:]
-    scale = np.sqrt(np.abs(np.diag(zx))) + 1e-30
     with np.errstate(all="ignore"):
-        zi = np.linalg.pinv(zx / np.outer(scale, scale), rcond=1e-12) / np.outer(scale, scale)
+        zi = scaled_pinv(zx)
         theta = zi @ zy
         meat = np.zeros((m, m))
         for x, y in rows:
@@ -648,7 +659,7 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
 
     def responses(z, effs):
         """Per record: (measured current less the free run from the voltages, (n_base + m, 2, N')
-        free-run responses to each record's psi_m (and, in a current frame, psi_q: :func:`frame_flux_input`)
+        free-run responses to each record's psi_m (and, in a turned frame, psi_q: :attr:`Prepared.turned`)
         and to each column of ``effs``)."""
         rs_q, lq_x, r_d = (np.exp(z) * _SCALE[:n_z]).tolist() + ([] if free_d else [rs_d])
         r_d = rs_q if tied else r_d
@@ -662,8 +673,8 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
             x0 = np.zeros((first + len(rows), 2))
             u[0], x0[0] = b * v, i[:, 0]
             u[1, 1] = -ts / lq * omega
-            if framed:
-                u[2] = frame_flux_input(omega, ts, ld)
+            if framed:  # +1 Wb along the frame's q axis: back-EMF -omega_e psi_q on d (DQModel.psi_input's on_q)
+                u[2, 0] = ts / ld * omega
             for j, (kind, row) in enumerate(rows, start=first):
                 if kind == "voltage":
                     u[j] = b * row
@@ -985,13 +996,6 @@ def flux_adapted(model: DQModel, p: Prepared) -> np.ndarray:
     free run turns a small psi_m mismatch into a steady q-current error that the cross-coupling
     omega_e L_q / R_s (~3 at rated speed) amplifies on d; the agent re-identifies it anyway. One
     scalar per record (two in a turned frame), from data the held-out segment does not include."""
-    y, cols, coef = _record_flux(model, p)
-    return y if coef is None else y + np.tensordot(coef, cols, 1)
-
-
-def _record_flux(model: DQModel, p: Prepared):
-    """(free run, (m, 2, N) responses to +1 Wb of psi_m (and of the frame's psi_q in a turned frame),
-    their least-squares coefficients on the fit segment, None where a response is not finite)."""
     y = model.simulate(p.sig)
     a0, a1 = model.transition(float(np.mean(p.sig.omega_e)))
     cols = [simulate_ltv(a0, a1, p.sig.omega_e, model.psi_input(p.sig), np.zeros(2))]  # +1 Wb of psi_m
@@ -1000,8 +1004,8 @@ def _record_flux(model: DQModel, p: Prepared):
     cols, f = np.stack(cols), p.fit_slice
     s = cols[:, :, f].reshape(len(cols), -1).T
     if not (np.all(np.isfinite(s)) and np.all(np.isfinite(y[:, f]))):
-        return y, cols, None
-    return y, cols, np.linalg.lstsq(s, (p.sig.i_dq[:, f] - y[:, f]).ravel(), rcond=None)[0]
+        return y
+    return y + np.tensordot(np.linalg.lstsq(s, (p.sig.i_dq[:, f] - y[:, f]).ravel(), rcond=None)[0], cols, 1)
 
 
 def onto_rotor(preps: list[Prepared], lq: float, rs: float = 0.0) -> list[Prepared]:
@@ -1028,36 +1032,17 @@ def onto_rotor(preps: list[Prepared], lq: float, rs: float = 0.0) -> list[Prepar
             continue
         s = p.sig
         v, i = s.v_dq[0] + 1j * s.v_dq[1], s.i_dq[0] + 1j * s.i_dq[1]
-        e = v - rs * i - 1j * s.omega_e * lq * i
-        fc = FRAME_CUTOFF * float(np.mean(np.abs(s.omega_e))) / (2 * np.pi)
-        sos = butter(4, fc, fs=1.0 / s.ts, output="sos")
-        pad = min(s.n - 1, int(5.0 / (fc * s.ts)))
-        e = sosfiltfilt(sos, e.real, padlen=pad) + 1j * sosfiltfilt(sos, e.imag, padlen=pad)
-        delta = 0.5 * np.pi - np.unwrap(np.angle(e))
-        delta = np.where(np.abs(delta) <= np.arcsin(FRAME_MAX), delta, 0.0)  # beyond any current angle: not one
+        delta = 0.5 * np.pi - np.unwrap(np.angle(frame_lowpass(v - rs * i - 1j * s.omega_e * lq * i, s)))
+        if np.max(np.abs(delta)) > np.arcsin(FRAME_MAX):  # beyond any current angle: the L_q is wrong, turn none
+            return preps
         sig = Signals.from_abc(s.v_abc, s.i_abc, s.theta_e - delta, s.omega_e, s.ts, s.pole_pairs)
         turned.append(replace(p, sig=sig, meta={**p.meta, "frame_turned_rad": float(np.mean(delta))}))
-    angles = [abs(p.meta["frame_turned_rad"]) for p in turned if not p.encoder]
+    angles = [abs(p.meta["frame_turned_rad"]) for p in turned if p.turned]
     return turned if angles and np.mean(angles) > FRAME_MIN_RAD else preps
 
 
 FRAME_MAX = 0.7  #: a current frame's psi_q at most this share of psi_m's upper bound (45 degrees)
 FRAME_MIN_RAD = np.radians(2.0)  #: a current frame is turned onto the rotor's beyond this mean angle (:func:`onto_rotor`)
-
-
-def frame_flux_input(omega: np.ndarray, ts: float, ld: float) -> np.ndarray:
-    """(2, N) the model's input from 1 Wb of magnet flux on the q axis of the frame, omega_e T_s / L_d
-    on d (its back-EMF -omega_e psi_q, eq. 6's sign).
-
-    A record turned from the current vector's frame onto the rotor's (:func:`onto_rotor`) keeps the
-    turn's error, an L_q error's share of omega_e L_q i: one such flux per record takes it in its
-    steady state (on a saliency-2 MTPA drive the null control went from 1.8x to 1.3x its noise
-    floor, on another from 3.8x to 1.2x). Only there: in any other frame it would take every
-    per-record level on d, the saturation's omega_e Delta psi_q first (four of four no-encoder
-    i_d = 0 drives lost their saturation to it)."""
-    u = np.zeros((2, omega.size))
-    u[0] = ts / ld * omega
-    return u
 
 
 IMPULSE_TAUS, IMPULSE_S = 8.0, 0.25  #: a model's impulse response is summed over 8 time constants, at most 0.25 s
