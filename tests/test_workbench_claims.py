@@ -447,3 +447,41 @@ def test_a_claim_is_withheld_where_an_unpinned_candidate_fits_clearly_better():
     assert _better_unclaimable([first, row("inverter_deadtime", 0.009, identifiable=False)], first) is None
     assert _better_unclaimable([first, row("inverter_deadtime", 0.0063)], first) is None
     assert _better_unclaimable([first, rival], None) is None
+
+
+def _shifted(shift: float) -> list:
+    """Four rig records at 40-100 % load whose voltage channel lags by ``shift`` samples (linear
+    interpolation: a DAQ filter the profile does not state)."""
+    recs = []
+    for j, load in enumerate((40.0, 60.0, 90.0, 100.0)):
+        r = simulate(GEAR, "healthy", load, 1.0, seed=830 + j)
+        k = np.arange(r.v_abc.shape[1], dtype=float)
+        v = np.array([np.interp(k - shift, k, x) for x in r.v_abc])
+        recs.append(Record(r.t, v, r.i_abc, theta_e=r.theta_e, omega_e=r.omega_e, source=f"lag_{j}", meta=r.meta))
+    return recs
+
+
+def test_a_path_change_below_a_tenth_of_a_sample_is_negligible_not_claimed(base80):
+    """The voltage path's change is no finding below 0.1 sample (agent.effects.voltage_delay,
+    NEGLIGIBLE): a 0.04-sample lag is fitted (a rotation of that size) and marked negligible, never
+    significant, with the floor named; a 0.3-sample lag is fitted within 20 % and not marked."""
+    rows = {}
+    for shift in (0.04, 0.3):
+        doc = ex.explain(base80, prepare(_shifted(shift), GEAR), candidates=["voltage_delay", "current_offset"])
+        rows[shift] = next(c for c in doc["candidates"] if c["effect"] == "voltage_delay")
+    small, large = rows[0.04], rows[0.3]
+    assert small["identifiable"] and abs(small["params"]["rotation_samples"]) < 0.1, small
+    assert small["negligible"] and not small["significant"]
+    assert "negligible" in small["note"] and "0.1 samples" in small["note"]
+    assert not large.get("negligible")
+    assert large["params"]["rotation_samples"] == pytest.approx(0.3, rel=0.2)
+
+
+def test_an_effect_is_negligible_only_where_every_floored_parameter_is_below_its_floor():
+    delay = EFFECTS["voltage_delay"]
+    assert delay.negligible([0.05, 0.0, -0.09])
+    assert not delay.negligible([0.0, 0.0, 0.12])
+    assert not delay.negligible([0.0, 0.2, 0.0])
+    assert not EFFECTS["current_offset"].negligible([0.0, 0.0])  # no floor: never negligible by size
+    row = {"identifiable": True, "at_bound": False, "explained_fraction": 0.5}
+    assert ex._claimable(row) and not ex._claimable({**row, "negligible": True})

@@ -28,6 +28,7 @@ class Param:
     upper: float = np.inf  #: physical upper bound
     scale: str | Callable[[dict], float] = ""  #: base value (key or function of them) the bounds multiply
     split: bool = False  #: one signed part of a signed quantity (lower bound 0): sitting at 0 is no physical limit
+    negligible: float = 0.0  #: a size (parameter's unit) below which it is no finding (0: none; :meth:`Effect.negligible`)
 
     def bounds(self, base: dict) -> tuple[float, float]:
         """(lower, upper) in the parameter's unit for the drive's ``base`` values (unbounded where
@@ -75,6 +76,15 @@ class Effect:
     def __post_init__(self):
         if self.kind not in ("voltage", "output"):
             raise ValueError(f"effect {self.id}: kind must be 'voltage' or 'output'")
+
+    def negligible(self, values) -> bool:
+        """Whether fitted ``values`` are too small to be this effect: every parameter with a
+        ``negligible`` size is below it (False where none has one). Such a fit only takes up what the
+        base model's own approximations leave, and a claim would name an effect the drive lacks."""
+        floors = np.array([p.negligible for p in self.params])
+        if not np.any(floors > 0):
+            return False
+        return bool(np.all(np.abs(np.asarray(values, float))[floors > 0] < floors[floors > 0]))
 
     def cols(self, sig: Signals) -> np.ndarray:
         """``columns(sig)``, cached for the last Signals object (each term asks for its own row)."""

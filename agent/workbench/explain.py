@@ -199,6 +199,11 @@ def reported(eid: str, r: Refit, ctx: dict) -> dict:
                        "its response is pinned, no figure of it is") + f"); revealed by {eff.reveals}"}
 
 
+def params_floor(eid: str) -> str:
+    """The sizes below which effect ``eid``'s parameters are no finding, as text."""
+    return ", ".join(f"|{p.name}| < {p.negligible:g} {p.unit}" for p in get_effect(eid).params if p.negligible > 0)
+
+
 def unidentified_note(eid: str, how: dict) -> str:
     """Why the records cannot pin effect ``eid`` down (``how``: :attr:`Refit.identifiable`'s
     judgement), and which records would."""
@@ -314,12 +319,14 @@ def _better_unclaimable(rows: list[dict], first: dict | None) -> dict | None:
     if first is None or first["nrmse_after"] is None:
         return None
     better = [r for r in rows if r is not first and r["nrmse_after"] is not None and not _claimable(r)
-              and r["nrmse_after"] < RIVAL_RATIO * first["nrmse_after"] and (r["explained_fraction"] or 0.0) > 0.0]
+              and not r.get("negligible") and r["nrmse_after"] < RIVAL_RATIO * first["nrmse_after"]
+              and (r["explained_fraction"] or 0.0) > 0.0]
     return min(better, key=lambda r: r["nrmse_after"], default=None)
 
 
 def _claimable(row: dict) -> bool:
-    return bool(row["identifiable"] and not row["at_bound"] and (row["explained_fraction"] or 0.0) >= MIN_EXPLAINED)
+    return bool(row["identifiable"] and not row["at_bound"] and not row.get("negligible")
+                and (row["explained_fraction"] or 0.0) >= MIN_EXPLAINED)
 
 
 def _forward(rows: list[dict], fits: dict, preps: list[Prepared], base: dict, prior: dict) -> None:
@@ -344,6 +351,7 @@ def _forward(rows: list[dict], fits: dict, preps: list[Prepared], base: dict, pr
             h = heldout(r.model, preps)
             share, p = _share(h_ctrl, h), block_p(h_ctrl, h)
             ok = (r.identifiable[row["effect"]][0] and not r.at_bound.get(row["effect"], False)
+                  and not get_effect(row["effect"]).negligible(r.values[row["effect"]])
                   and (share or 0.0) >= MIN_EXPLAINED and p < ALPHA / len(open_rows))
             tried.append((p, row, ok, share))
         p, row, ok, share = min(tried, key=lambda t: t[0])
@@ -414,6 +422,11 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
                **reported(eid, r, context(r, preps, baseline.profile))}
         if not identifiable:
             row["note"] = unidentified_note(eid, how)
+        elif get_effect(eid).negligible(r.values[eid]):
+            row["negligible"] = True
+            row["note"] = "; ".join(filter(None, [row.get("note"), (
+                "negligible: its fitted size is below what the base model's own approximations leave "
+                f"({params_floor(eid)}), so it is not claimed")]))
         if bound:
             row["note"] = "; ".join(filter(None, ["at bound: the fit wants it beyond its physical range, so it is "
                                                   "not this effect", row.get("note")]))
