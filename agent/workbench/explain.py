@@ -324,6 +324,64 @@ def _better_unclaimable(rows: list[dict], first: dict | None) -> dict | None:
     return min(better, key=lambda r: r["nrmse_after"], default=None)
 
 
+TWIN_SHARE = 0.9  #: a claim is withheld where another effect's form reproduces this share of its fitted contribution
+#: what separates two effects that the records at hand cannot tell apart (either order)
+SEPARATES = {
+    frozenset(("flux_harmonics", "inverter_deadtime")):
+        "records at a second speed, 20 % or more apart (the back-EMF lines grow with the speed, the dead "
+        "time's stay), or under MTPA at loads whose current angles differ (the dead time's lines turn with "
+        "the current, the magnet's stay with the rotor)",
+}
+
+
+def reproduced(first: str, values, other: str, preps: list[Prepared]) -> float:
+    """The share of effect ``first``'s fitted contribution (``values`` times its columns, over the
+    fit segments, less each record's mean: what the base's per-record flux and resistance take)
+    that effect ``other``'s columns reproduce by least squares, with a free level per record
+    and axis. 1 means the records cannot tell the two apart: at one speed under i_d = 0 a dead
+    time's 6 f_e lines are a 5th and a 7th harmonic in the ratio 49:25 at the current's angle."""
+    a, b = get_effect(first), get_effect(other)
+    if a.kind != b.kind:
+        return 0.0
+    n_rec = len(preps)
+    target, design = [], []
+    for k, p in enumerate(preps):
+        f = p.fit_slice
+        target.append(np.tensordot(np.asarray(values, float), a.cols(p.sig)[:, :, f], 1).ravel())
+        cols = b.cols(p.sig)[:, :, f].reshape(len(b.params), -1)
+        level = np.zeros((2 * n_rec, cols.shape[1]))
+        half = cols.shape[1] // 2
+        level[2 * k, :half], level[2 * k + 1, half:] = 1.0, 1.0  # rows are (d samples, q samples)
+        design.append(np.vstack((cols, level)))
+    y, x = np.concatenate(target), np.hstack(design).T
+    means = x[:, len(b.params):]
+    y0 = y - means @ np.linalg.lstsq(means, y, rcond=None)[0]
+    energy = float(y0 @ y0)
+    if not (energy > 0 and np.all(np.isfinite(x))):
+        return 0.0
+    rest = y - x @ np.linalg.lstsq(x, y, rcond=None)[0]
+    return float(max(0.0, 1.0 - (rest @ rest) / energy))
+
+
+def _twin(first: dict | None, rows: list[dict], fits: dict, preps: list[Prepared]) -> tuple[dict, float] | None:
+    """The candidate whose form reproduces at least ``TWIN_SHARE`` of the to-be-claimed ``first``'s
+    fitted contribution on these records (:func:`reproduced`), if any: the records cannot tell
+    the two apart, and claiming ``first`` would name one of two effects by chance."""
+    if first is None:
+        return None
+    values = fits[first["effect"]].values[first["effect"]]
+    best = max(((r, reproduced(first["effect"], values, r["effect"], preps)) for r in rows if r is not first),
+               key=lambda t: t[1], default=None)
+    return best if best is not None and best[1] >= TWIN_SHARE else None
+
+
+def twin_note(first: str, other: str, share: float) -> str:
+    """Why ``first`` is not claimed beside its twin ``other``, and which records would separate them."""
+    how = SEPARATES.get(frozenset((first, other)), f"records that reveal {other}: {get_effect(other).reveals}")
+    return (f"not claimed: these records cannot tell {first} from {other} ({other}'s form reproduces "
+            f"{share:.0%} of {first}'s fitted contribution); {how} would separate them")
+
+
 def _claimable(row: dict) -> bool:
     return bool(row["identifiable"] and not row["at_bound"] and not row.get("negligible")
                 and (row["explained_fraction"] or 0.0) >= MIN_EXPLAINED)
@@ -440,11 +498,17 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
     # Only the best of them is claimed on its own: a large effect is partly absorbed by every
     # candidate, so the others must be significant on top of it (_forward), not against the control.
     first = max((r for r in rows if r["significant"]), key=lambda r: r["explained_fraction"] or 0.0, default=None)
+    leader = first  # the others are judged on top of it, whether or not it is claimed
     rival = _better_unclaimable(rows, first)
     if rival is not None:  # the records cannot tell them apart: no claim, and why
         first.update(significant=False, note="; ".join(filter(None, [first.get("note"), (
             f"not claimed: {rival['effect']} fits the held-out records better (NRMSE {100 * rival['nrmse_after']:.3g} % "
             f"against {100 * first['nrmse_after']:.3g} %) but these records cannot pin it ({rival.get('note', '')})")])))
+        first = None
+    twin = _twin(first, rows, dict(zip(candidates, fits)), preps)
+    if twin is not None:  # another effect's form makes the same contribution: no claim, and what separates them
+        first.update(significant=False, twin={"effect": twin[0]["effect"], "reproduced": twin[1]}, note="; ".join(
+            filter(None, [first.get("note"), twin_note(first["effect"], twin[0]["effect"], twin[1])])))
         first = None
     for row in rows:
         if row["significant"] and row is not first:
@@ -453,7 +517,7 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
     for row in rows:
         if row.pop("alone_significant", False) and not row["significant"]:
             row["note"] = "; ".join(filter(None, [row.get("note"), (
-                f"significant against the control alone, not on top of {first['effect']}: it takes up part of "
+                f"significant against the control alone, not on top of {leader['effect']}: it takes up part of "
                 f"that effect's error")]))
     for row, h in zip(rows, held):
         if not row["significant"] and _claimable(row) and row["p_value"] < 1.0:
