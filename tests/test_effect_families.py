@@ -147,7 +147,7 @@ def test_a_drive_reporting_its_command_one_sample_early_is_a_negative_delay(base
     top = _top(doc)
     assert top["effect"] == "voltage_delay" and top["significant"] and not top["at_bound"], doc["candidates"][:2]
     assert top["params"]["delay_samples"] == pytest.approx(-1.0, abs=0.2)
-    assert "at bound" not in top.get("note", "")
+    assert "at bound" not in top.get("note", "") and "reach" not in top.get("note", "")
 
 
 RIG = dict(rs=2.1, ld=15e-3, lq=28e-3, psi=0.25, p=4, w=2 * np.pi * 100, ts=4e-5)

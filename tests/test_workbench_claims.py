@@ -118,9 +118,10 @@ def test_nested_refit_is_never_worse_than_its_parent(base80, effect, load, seed)
 
 def test_effect_at_its_bound_is_never_significant(base80):
     """Voltage samples *lagging* the current by four samples want a delay beyond the voltage path's
-    physical range (a DAQ filter of two samples at most; its column interpolates one): the fit holds
-    it at the bound and explain says so instead of claiming it. (A lead is a negative delay within
-    range: tests/test_effect_families.py.)"""
+    columns (they interpolate within a sample): the fit holds it at the bound and explain says so
+    instead of claiming it, and names the profile keys that bring the path within reach (not
+    "beyond its physical range": a four-sample lag is a path, only not the stated one). (A lead is a
+    negative delay within range: tests/test_effect_families.py.)"""
     recs = []
     for j in range(4):
         r = simulate(GEAR, "healthy", (60.0, 100.0)[j % 2], 1.0, seed=820 + j)
@@ -129,7 +130,8 @@ def test_effect_at_its_bound_is_never_significant(base80):
     doc = ex.explain(base80, prepare(recs, GEAR), candidates=["voltage_delay", "current_offset"])
     row = next(c for c in doc["candidates"] if c["effect"] == "voltage_delay")
     assert row["at_bound"] and not row["significant"], row
-    assert "at bound" in row["note"]
+    assert "at the columns' reach" in row["note"] and "sampling.voltage_delay_samples" in row["note"]
+    assert "beyond its physical range" not in row["note"]
 
 
 @pytest.mark.parametrize("effect, value, key", [

@@ -71,6 +71,7 @@ class Effect:
     torque: str = "none"  #: what it adds to the torque regression (eq. 15)
     raw: bool = False  #: its columns carry the measured samples' white noise (not only the smoothed current)
     turns_voltage: bool = False  #: a column turns the voltage (the one-step regression then uses zoh2 columns)
+    at_bound: str = ""  #: what a fit on a bound means for this effect, where it is not "beyond physics"
     _cache: list = field(default_factory=lambda: [None, None], compare=False, repr=False)
 
     def __post_init__(self):

@@ -74,4 +74,8 @@ EFFECT = Effect(
             "the rotation omega_e (d + a) T_s is seen, partly absorbed into the lumped parameters: speed or "
             "load steps of 10 % or more reveal it then",
     raw=True, turns_voltage=True,
+    at_bound="at the columns' reach: the records' voltage path differs from the stated one by about a sample or "
+             "more, which the columns (a linear interpolation within one sample) cannot follow, so no figure of it "
+             "is given; state the drive's path within a sample (sampling.voltage_delay_samples, "
+             "voltage_advance_samples: its documentation, or this fit's direction) and explain again",
 )

@@ -486,8 +486,8 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
                 "negligible: its fitted size is below what the base model's own approximations leave "
                 f"({params_floor(eid)}), so it is not claimed")]))
         if bound:
-            row["note"] = "; ".join(filter(None, ["at bound: the fit wants it beyond its physical range, so it is "
-                                                  "not this effect", row.get("note")]))
+            row["note"] = "; ".join(filter(None, [get_effect(eid).at_bound or (
+                "at bound: the fit wants it beyond its physical range, so it is not this effect"), row.get("note")]))
         if not h["stable"]:
             row["note"] = h["note"]
         rows.append(row)
