@@ -523,3 +523,24 @@ def test_a_claim_whose_contribution_a_twin_reproduces_is_withheld_naming_what_se
     assert not row["significant"] and row["twin"]["effect"] == "inverter_deadtime"
     assert 0.5 <= row["twin"]["reproduced"] < 0.9
     assert "cannot tell flux_harmonics from inverter_deadtime" in row["note"] and "second speed" in row["note"]
+
+
+def test_flux_harmonics_and_dead_time_are_separable_only_across_speeds_or_current_angles():
+    """The pair's 6 f_e lines differ only in how they move: the magnet's with the speed, the dead
+    time's with the current angle. Records at one speed and one current angle cannot separate them
+    (and a second effect of the pair is then not claimed on top of the first); a 20 % speed spread
+    or a 5 degree current-angle spread can. Any other pair is separable as far as this rule goes."""
+    from types import SimpleNamespace
+
+    def rec(omega, i_d, i_q):
+        n = 100
+        return SimpleNamespace(sig=SimpleNamespace(omega_e=np.full(n, omega), i_dq=np.stack((np.full(n, i_d),
+                                                                                             np.full(n, i_q)))))
+
+    one = [rec(600.0, 0.0, q) for q in (4.0, 6.0, 9.0, 10.0)]  # i_d = 0, loads differ, one speed
+    assert not ex.separable("flux_harmonics", "inverter_deadtime", one)
+    assert not ex.separable("inverter_deadtime", "flux_harmonics", one)
+    assert ex.separable("flux_harmonics", "inverter_deadtime", one[:2] + [rec(730.0, 0.0, 9.0)])
+    mtpa = [rec(600.0, -q * np.tan(a), q) for q, a in ((4.0, 0.02), (10.0, 0.02 + np.radians(6.0)))]
+    assert ex.separable("flux_harmonics", "inverter_deadtime", mtpa)
+    assert ex.separable("flux_harmonics", "current_offset", one)

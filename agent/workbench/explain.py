@@ -334,6 +334,24 @@ SEPARATES = {
 }
 
 
+SPEED_SPREAD = 1.2  #: records whose mean speeds span this ratio separate speed-proportional lines from fixed ones
+ANGLE_SPREAD = np.radians(5.0)  #: records whose current angles span this turn current-locked 6 f_e lines by 30 degrees
+
+
+def separable(first: str, other: str, preps: list[Prepared]) -> bool:
+    """Whether records ``preps`` can tell effect ``first`` from ``other`` by physics, where the two
+    are known to share a signature (``SEPARATES``); True for any other pair. The magnet's 5th and
+    7th and the dead time both put 6 f_e lines into dq: the magnet's grow with the speed and stay
+    with the rotor, the dead time's keep their size and turn with the current vector. At one speed
+    (mean speeds within ``SPEED_SPREAD``) and one current angle (within ``ANGLE_SPREAD``), a dead
+    time modelled with a slightly wrong knee leaves exactly such lines for the harmonics to take."""
+    if frozenset((first, other)) != frozenset(("flux_harmonics", "inverter_deadtime")):
+        return True
+    speeds = [float(np.mean(np.abs(p.sig.omega_e))) for p in preps]
+    angles = [float(np.arctan2(-np.mean(p.sig.i_dq[0]), np.mean(p.sig.i_dq[1]))) for p in preps]
+    return max(speeds) >= SPEED_SPREAD * max(min(speeds), 1e-9) or float(np.ptp(angles)) >= ANGLE_SPREAD
+
+
 def reproduced(first: str, values, other: str, preps: list[Prepared]) -> float:
     """The share of effect ``first``'s fitted contribution (``values`` times its columns, over the
     fit segments, less each record's mean: what the base's per-record flux and resistance take)
@@ -398,6 +416,13 @@ def _forward(rows: list[dict], fits: dict, preps: list[Prepared], base: dict, pr
     if not accepted:
         return
     open_rows = [r for r in rows if not r["significant"] and _claimable(r)]
+    for row in list(open_rows):  # an effect these records cannot tell from an accepted one is not added on top
+        twin = next((a for a in accepted if not separable(row["effect"], a, preps)), None)
+        if twin is not None:
+            open_rows.remove(row)
+            row["note"] = "; ".join(filter(None, [row.get("note"), (
+                f"not claimed on top of {twin}: these records cannot tell them apart (one speed, one current "
+                f"angle); {SEPARATES[frozenset((row['effect'], twin))]} would separate them")]))
     while open_rows and len(accepted) < 4:
         ctrl = fits[accepted[0]]
         for eid in accepted[1:]:
