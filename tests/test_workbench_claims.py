@@ -275,15 +275,17 @@ def test_bench_workbench_short_form_motulator():
 @pytest.mark.slow
 def test_saturation_under_mtpa_needs_the_nameplate_resistance():
     """motulator's MTPA drive: without a nameplate R_s, R_s i_d trades with the saturation's cubic
-    term and explain says it cannot tell them apart; with the nameplate R_s the saturation is
-    first, significant and within 20 %."""
+    term: explain may name the saturation (its response is pinned, 7x better than the control) but
+    gives none of its figures, and names the nameplate's R_s as what separates them; with the
+    nameplate R_s the saturation is first, significant and within 20 %."""
     pytest.importorskip("motulator")
     from bench.bench_workbench import Bench, Motulator, scenarios
 
     b = Bench(Motulator(), 1.0, say=lambda s: None)
     scs = scenarios(b.sim)
     without = b.scenario("magnetic_saturation", scs["magnetic_saturation"])
-    assert not without["significant"] and not without["identifiable"] and "nameplate.rs_ohm" in without["note"]
+    assert not without["identifiable"] and "nameplate.rs_ohm" in without["note"]
+    assert "not separable" in without["note"] or not without["significant"]
     with_plate = b.scenario("magnetic_saturation+nameplate", scs["magnetic_saturation+nameplate"])
     assert with_plate["rank"] == 1 and with_plate["significant"] and abs(with_plate["error"]) <= 0.2
 

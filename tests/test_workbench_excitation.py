@@ -100,7 +100,8 @@ def test_a_base_beyond_any_machine_of_the_rating_is_named_not_ranked_against():
 def test_a_drive_whose_records_pin_no_inductance_gets_that_answer():
     """A family drive without an encoder (asynchronous current sampling, a speed loop, load ripple):
     identify leaves L_d, L_q open and the control refit lands kilohenries away; explain ranks nothing
-    and names the nameplate or an encoder angle. With its nameplate the same records are ranked."""
+    and names the nameplate or an encoder angle for L_q, a load step or the nameplate's R_s for R_s,q.
+    With its nameplate the same records are ranked."""
     from bench.family import draw_drive, profile as family_profile, simulate as family_simulate
 
     drive = draw_drive(20023)
@@ -116,3 +117,4 @@ def test_a_drive_whose_records_pin_no_inductance_gets_that_answer():
         else:
             assert doc["candidates"] == [] and "base model is not identified" in doc["note"], doc.get("note")
             assert "nameplate.lq_h" in doc["note"] and "encoder angle" in doc["note"]
+            assert "Rs_q" in doc["note"] and "load step" in doc["note"] and "nameplate.rs_ohm" in doc["note"]

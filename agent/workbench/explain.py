@@ -490,7 +490,10 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
     if wrong is not None and all(implausible_base(r.phys, base, baseline.profile.motor) for r in fits):
         return _unranked(baseline, preps, before, h_ctrl, dyn, wrong + (
             "; the baseline does not pin L_q either: give the nameplate (nameplate.lq_h) or records with an "
-            "encoder angle" if "Lq" not in prior else ""), t0)
+            "encoder angle" if "Lq" not in prior else "") + (
+            "; R_s,q is pinned by records with a load step (the q current's time constant: each record's magnet "
+            "flux takes any steady q voltage) or by the nameplate (nameplate.rs_ohm)"
+            if "Rs_q" in wrong and "Rs" not in prior else ""), t0)
     rows, p_values, held = [], [], []
     for eid, r in zip(candidates, fits):
         h = heldout(r.model, preps)
