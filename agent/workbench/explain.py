@@ -345,7 +345,7 @@ def separable(first: str, other: str, preps: list[Prepared]) -> bool:
     with the rotor, the dead time's keep their size and turn with the current vector. At one speed
     (mean speeds within ``SPEED_SPREAD``) and one current angle (within ``ANGLE_SPREAD``), a dead
     time modelled with a slightly wrong knee leaves exactly such lines for the harmonics to take."""
-    if frozenset((first, other)) != frozenset(("flux_harmonics", "inverter_deadtime")):
+    if frozenset((first, other)) not in SEPARATES:
         return True
     speeds = [float(np.mean(np.abs(p.sig.omega_e))) for p in preps]
     angles = [float(np.arctan2(-np.mean(p.sig.i_dq[0]), np.mean(p.sig.i_dq[1]))) for p in preps]
