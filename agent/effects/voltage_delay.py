@@ -74,8 +74,9 @@ EFFECT = Effect(
             "the rotation omega_e (d + a) T_s is seen, partly absorbed into the lumped parameters: speed or "
             "load steps of 10 % or more reveal it then",
     raw=True, turns_voltage=True,
-    at_bound="at the columns' reach: the records' voltage path differs from the stated one by about a sample or "
-             "more, which the columns (a linear interpolation within one sample) cannot follow, so no figure of it "
-             "is given; state the drive's path within a sample (sampling.voltage_delay_samples, "
-             "voltage_advance_samples: its documentation, or this fit's direction) and explain again",
+    at_bound="at the columns' reach: the fit wants the voltage path further from the stated one than its columns "
+             "follow (they interpolate within one sample, and turn by one omega_e T_s at most); the path may be "
+             "that far off, or another error of the model pulls it there, so no figure of it is given; where the "
+             "drive's path is not known within a sample, state it (sampling.voltage_delay_samples, "
+             "voltage_advance_samples) and explain again",
 )
