@@ -66,6 +66,19 @@ class Observation:
     #: with the previous sample's regressors as instruments (:func:`_dynamics`)
 
 
+def iv_moments(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(Z^T X, Z^T y) of the regression y = X theta with the regressors ``IV_LAG`` samples back as
+    instruments Z (rows of ``x``, ``y`` are consecutive samples)."""
+    z = x[:-IV_LAG]
+    return z.T @ x[IV_LAG:], z.T @ y[IV_LAG:]
+
+
+def iv_meat(x: np.ndarray, y: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """Z^T diag(e^2) Z of that regression at ``theta``: the meat of its sandwich covariance."""
+    ze = x[:-IV_LAG] * (y[IV_LAG:] - x[IV_LAG:] @ theta)[:, None]
+    return ze.T @ ze
+
+
 def zero_sequence_sigma(x_abc: np.ndarray) -> float:
     """Per-phase rms of the channels' white noise, from the zero sequence (x_a + x_b + x_c)/3 of a
     three-wire machine, which carries only the channels' own noise (variance sigma^2/3). The median
@@ -120,11 +133,8 @@ def observe(sig: Signals, encoder: bool = True, instruments: bool = True) -> Obs
         xe = x * e[:, None]
         gram.append((g, h, xe.T @ xe))
         if instruments:
-            z, x1, y1 = x[:-IV_LAG], x[IV_LAG:], y[IV_LAG:]  # instruments: the regressors IV_LAG samples back
-            zx, zy = z.T @ x1, z.T @ y1
-            theta_iv = np.linalg.lstsq(zx, zy, rcond=None)[0]
-            ze = z * (y1 - x1 @ theta_iv)[:, None]
-            iv.append((zx, zy, ze.T @ ze))
+            zx, zy = iv_moments(x, y)
+            iv.append((zx, zy, iv_meat(x, y, np.linalg.lstsq(zx, zy, rcond=None)[0])))
     return Observation(means, np.array(se), gram, sig.ts, encoder, iv)
 
 
@@ -371,18 +381,18 @@ def _estimate(obs: list[Observation], profile: DriveProfile, priors: dict[str, P
     for j in np.flatnonzero(weak):
         close = [k for k in range(4) if k == j or abs(corr[j, k]) > COLLINEAR]
         names = [NAMES[k] for k in close if weak[k]]
-        if names not in [g["parameters"] for g in groups]:
-            reason = _collinear_reason([NAMES[k] for k in close], means, any(o.encoder for o in obs))
+        if names in [g["parameters"] for g in groups]:
+            continue
+        reason = _collinear_reason([NAMES[k] for k in close], means, any(o.encoder for o in obs))
         inductances = [n for n in names if n in ("Ld", "Lq") and dyn[("Ld", "Lq").index(n)][2]]
         if inductances:
             reason = (f"{' and '.join(inductances)}: the drive's voltage answers the current's noise within the "
                       f"sample (a controller without computation delay), so the current loop's broadband voltage "
                       f"does not read the inductance; records with current-reference steps, or the nameplate's "
                       f"{' and '.join(n.lower() + '_h' for n in inductances)}; " + reason)
-        if names not in [g["parameters"] for g in groups]:
-            groups.append({"parameters": names, "reason": reason,
-                           "correlated": {NAMES[k]: float(data_sd[k]) for k in close if not weak[k]},
-                           "from_nameplate": all(n in priors for n in names)})
+        groups.append({"parameters": names, "reason": reason,
+                       "correlated": {NAMES[k]: float(data_sd[k]) for k in close if not weak[k]},
+                       "from_nameplate": all(n in priors for n in names)})
     data_sd = np.where(weak, np.inf, data_sd)
     values, ci, rel, by = {}, {}, {}, {}
     for j, name in enumerate(NAMES):

@@ -348,7 +348,7 @@ def separable(first: str, other: str, preps: list[Prepared]) -> bool:
     if frozenset((first, other)) not in SEPARATES:
         return True
     speeds = [float(np.mean(np.abs(p.sig.omega_e))) for p in preps]
-    angles = [float(np.arctan2(-np.mean(p.sig.i_dq[0]), np.mean(p.sig.i_dq[1]))) for p in preps]
+    angles = [float(np.arctan2(-np.mean(p.sig.i_dq[0]), abs(np.mean(p.sig.i_dq[1])))) for p in preps]  # either sign of torque
     return max(speeds) >= SPEED_SPREAD * max(min(speeds), 1e-9) or float(np.ptp(angles)) >= ANGLE_SPREAD
 
 
@@ -361,20 +361,15 @@ def reproduced(first: str, values, other: str, preps: list[Prepared]) -> float:
     a, b = get_effect(first), get_effect(other)
     if a.kind != b.kind:
         return 0.0
-    n_rec = len(preps)
     target, design = [], []
-    for k, p in enumerate(preps):
+    for p in preps:  # a free level per record and axis: both sides less their means (Frisch-Waugh)
         f = p.fit_slice
-        target.append(np.tensordot(np.asarray(values, float), a.cols(p.sig)[:, :, f], 1).ravel())
-        cols = b.cols(p.sig)[:, :, f].reshape(len(b.params), -1)
-        level = np.zeros((2 * n_rec, cols.shape[1]))
-        half = cols.shape[1] // 2
-        level[2 * k, :half], level[2 * k + 1, half:] = 1.0, 1.0  # rows are (d samples, q samples)
-        design.append(np.vstack((cols, level)))
+        t = np.tensordot(np.asarray(values, float), a.cols(p.sig)[:, :, f], 1)
+        c = b.cols(p.sig)[:, :, f]
+        target.append((t - t.mean(axis=-1, keepdims=True)).ravel())
+        design.append((c - c.mean(axis=-1, keepdims=True)).reshape(len(b.params), -1))
     y, x = np.concatenate(target), np.hstack(design).T
-    means = x[:, len(b.params):]
-    y0 = y - means @ np.linalg.lstsq(means, y, rcond=None)[0]
-    energy = float(y0 @ y0)
+    energy = float(y @ y)
     if not (energy > 0 and np.all(np.isfinite(x))):
         return 0.0
     rest = y - x @ np.linalg.lstsq(x, y, rcond=None)[0]

@@ -57,7 +57,7 @@ from agent.errors import InputError
 from agent.identify import operating_point, record_signals
 from agent.sanity import not_running
 from agent.kernels import simulate_ltv
-from agent.physical import IV_LAG, endogenous, scaled_pinv, zero_sequence_sigma
+from agent.physical import endogenous, iv_meat, iv_moments, scaled_pinv, zero_sequence_sigma
 from agent.model import BASE_TERMS, DQModel, Signals, lumped_params, regressors, zoh2_input, zoh2_matrices
 from agent.profile import DriveProfile
 from agent.records import Record
@@ -181,17 +181,17 @@ def follow_current(sig: Signals, rec: Record) -> Signals:
     (1 V per 5 mrad at rated speed), and a free-run fit bends R and L to hide it. The drive holds
     the current vector on the rotor's q axis well beyond these frequencies, so the current's angle
     below fe/2 is the rotor's; what the effects put in the current angle (at fe and above) is left
-    out. The speed is that angle's below half the shaft frequency: a speed step, which the narrow
-    PLL follows late (14 % of the speed off at its edge, 1.4 % rms over a family drive's record,
-    against 0.08 % for the angle's), while the shaft's once-per-revolution ripple stays in the
-    angle against the speed, where ``speed_ripple`` reads it."""
+    out. The speed is that angle's below half the shaft frequency: it follows a speed step, which
+    the narrow PLL follows late (on three family drives 0.3-0.55 % rms and at most 2.4-6 % off the
+    rotor's speed, against the PLL's 0.5-1.4 % rms and 6-14 %), while the shaft's once-per-revolution
+    ripple stays in the angle against the speed, where ``speed_ripple`` reads it."""
     ab = CLARKE[:2] @ rec.i_abc
     angle = sig.theta_e + np.unwrap(np.angle((ab[0] + 1j * ab[1]) * np.exp(-1j * (sig.theta_e + 0.5 * np.pi))))
     k = np.arange(sig.n)
     slope, offset = np.polyfit(k, angle, 1)
     wobble = angle - (slope * k + offset)
     theta = slope * k + offset + frame_lowpass(wobble, sig)
-    omega = (slope + np.gradient(frame_lowpass(wobble, sig, SPEED_CUTOFF / max(sig.pole_pairs or 1, 1)))) / sig.ts
+    omega = (slope + np.gradient(shaft_lowpass(wobble, sig))) / sig.ts
     return Signals.from_abc(rec.v_abc, rec.i_abc, theta, omega, sig.ts, sig.pole_pairs)
 
 
@@ -208,6 +208,12 @@ def frame_lowpass(x: np.ndarray, sig: Signals, share: float = FRAME_CUTOFF) -> n
         return (sosfiltfilt(sos, x.real, padtype="even", padlen=pad)
                 + 1j * sosfiltfilt(sos, x.imag, padtype="even", padlen=pad))
     return sosfiltfilt(sos, x, padtype="even", padlen=pad)
+
+
+def shaft_lowpass(x: np.ndarray, sig: Signals) -> np.ndarray:
+    """``x`` low-passed at ``SPEED_CUTOFF`` x the shaft frequency fe/p (:func:`frame_lowpass`): what a
+    frame's speed follows of its angle, leaving the shaft's once-per-revolution ripple out."""
+    return frame_lowpass(x, sig, SPEED_CUTOFF / max(sig.pole_pairs or 1, 1))
 
 
 @numba.njit(cache=True)
@@ -439,26 +445,19 @@ def one_step(preps: list[Prepared], effect_ids=(), bounds: dict | None = None, i
 
 
 def instrumented(rows: list[tuple[np.ndarray, np.ndarray]], b: float, force: bool = False):
-    """(theta, covariance) of the one-step regression y = X theta with the regressors ``IV_LAG``
-    samples back as instruments (``rows``: (X, y) per segment), where its voltage coefficient
+    """(theta, covariance) of the one-step regression y = X theta with the regressors
+    ``agent.physical.IV_LAG`` samples back as instruments (``rows``: (X, y) per segment), where its voltage coefficient
     rejects the compensated regression's ``b`` (:func:`agent.physical.endogenous`), or
     with ``force`` (identify found it so on the healthy records: a missing effect's error inflates
     the instrumented one's standard error here); else None. A controller that acts on the sample it
     has just taken puts the current's noise into that sample's voltage, which the compensation does
     not remove (:func:`agent.physical._dynamics` explains it and has the same check)."""
-    m = rows[0][0].shape[1]
-    zx, zy = np.zeros((m, m)), np.zeros(m)
-    for x, y in rows:
-        zx += x[:-IV_LAG].T @ x[IV_LAG:]
-        zy += x[:-IV_LAG].T @ y[IV_LAG:]
+    moments = [iv_moments(x, y) for x, y in rows]
+    zx, zy = sum(m[0] for m in moments), sum(m[1] for m in moments)
     with np.errstate(all="ignore"):
         zi = scaled_pinv(zx)
         theta = zi @ zy
-        meat = np.zeros((m, m))
-        for x, y in rows:
-            ze = x[:-IV_LAG] * (y[IV_LAG:] - x[IV_LAG:] @ theta)[:, None]
-            meat += ze.T @ ze
-        cov = zi @ meat @ zi.T
+        cov = zi @ sum(iv_meat(x, y, theta) for x, y in rows) @ zi.T
     sd = float(np.sqrt(max(cov[V_COLUMN, V_COLUMN], 0.0)))
     if not (np.all(np.isfinite(theta)) and np.isfinite(sd)):
         return None
@@ -1051,8 +1050,7 @@ def onto_rotor(preps: list[Prepared], lq: float, rs: float = 0.0) -> list[Prepar
         delta = -np.unwrap(np.angle(flux - lq * i))  # the active flux lies on the rotor's d axis
         if np.max(np.abs(delta)) > np.arcsin(FRAME_MAX):  # beyond any current angle: the L_q is wrong, turn none
             return preps
-        shaft = SPEED_CUTOFF / max(s.pole_pairs or 1, 1)  # the frame's speed as follow_current's
-        omega = s.omega_e - np.gradient(frame_lowpass(delta - np.mean(delta), s, shaft)) / s.ts
+        omega = s.omega_e - np.gradient(shaft_lowpass(delta - np.mean(delta), s)) / s.ts  # as follow_current's
         sig = Signals.from_abc(s.v_abc, s.i_abc, s.theta_e - delta, omega, s.ts, s.pole_pairs)
         turned.append(replace(p, sig=sig, meta={**p.meta, "frame_turned_rad": float(np.mean(delta))}))
     angles = [abs(p.meta["frame_turned_rad"]) for p in turned if p.turned]
