@@ -496,10 +496,10 @@ def test_reproduced_share_of_one_effects_contribution_by_anothers_form(base80):
     a 5th and a 7th in the ratio 49:25, with 11th and 13th besides); an output effect never
     reproduces a voltage effect."""
     preps = prepare([simulate(GEAR, "healthy", load, 0.6, seed=850 + j) for j, load in enumerate((50.0, 90.0))], GEAR)
-    fifth = np.array([0.004, 0.001, 0.0, 0.0])
-    assert ex.reproduced("flux_harmonics", fifth, "flux_harmonics", preps) == pytest.approx(1.0, abs=1e-9)
-    assert ex.reproduced("flux_harmonics", fifth, "inverter_deadtime", preps) < 0.5
-    assert ex.reproduced("flux_harmonics", fifth, "current_offset", preps) == 0.0
+    fifth = ex.contribution("flux_harmonics", np.array([0.004, 0.001, 0.0, 0.0]), preps)
+    assert ex.reproduced(fifth, "voltage", "flux_harmonics", preps) == pytest.approx(1.0, abs=1e-9)
+    assert ex.reproduced(fifth, "voltage", "inverter_deadtime", preps) < 0.5
+    assert ex.reproduced(fifth, "voltage", "current_offset", preps) == 0.0
 
 
 def test_a_claim_whose_contribution_a_twin_reproduces_is_withheld_naming_what_separates_them(monkeypatch):

@@ -352,23 +352,30 @@ def separable(first: str, other: str, preps: list[Prepared]) -> bool:
     return max(speeds) >= SPEED_SPREAD * max(min(speeds), 1e-9) or float(np.ptp(angles)) >= ANGLE_SPREAD
 
 
-def reproduced(first: str, values, other: str, preps: list[Prepared]) -> float:
-    """The share of effect ``first``'s fitted contribution (``values`` times its columns, over the
-    fit segments, less each record's mean: what the base's per-record flux and resistance take)
-    that effect ``other``'s columns reproduce by least squares, with a free level per record
-    and axis. 1 means the records cannot tell the two apart: at one speed under i_d = 0 a dead
-    time's 6 f_e lines are a 5th and a 7th harmonic in the ratio 49:25 at the current's angle."""
-    a, b = get_effect(first), get_effect(other)
-    if a.kind != b.kind:
+def contribution(eid: str, values, preps: list[Prepared]) -> list[np.ndarray]:
+    """Effect ``eid``'s contribution with parameters ``values`` on each record's fit segment, (2, N)
+    each, less its mean per axis (what the base's per-record flux and resistance take)."""
+    out = []
+    for p in preps:
+        t = np.tensordot(np.asarray(values, float), get_effect(eid).cols(p.sig)[:, :, p.fit_slice], 1)
+        out.append(t - t.mean(axis=-1, keepdims=True))
+    return out
+
+
+def reproduced(target: list[np.ndarray], kind: str, other: str, preps: list[Prepared]) -> float:
+    """The share of a ``kind`` effect's contribution ``target`` (:func:`contribution`) that effect
+    ``other``'s columns reproduce by least squares with a free level per record and axis (both
+    sides less their means: Frisch-Waugh). 1 means the records cannot tell the two apart: at one
+    speed under i_d = 0 a dead time's 6 f_e lines are a 5th and a 7th harmonic in the ratio 49:25
+    at the current's angle."""
+    b = get_effect(other)
+    if b.kind != kind:
         return 0.0
-    target, design = [], []
-    for p in preps:  # a free level per record and axis: both sides less their means (Frisch-Waugh)
-        f = p.fit_slice
-        t = np.tensordot(np.asarray(values, float), a.cols(p.sig)[:, :, f], 1)
-        c = b.cols(p.sig)[:, :, f]
-        target.append((t - t.mean(axis=-1, keepdims=True)).ravel())
+    design = []
+    for p in preps:
+        c = b.cols(p.sig)[:, :, p.fit_slice]
         design.append((c - c.mean(axis=-1, keepdims=True)).reshape(len(b.params), -1))
-    y, x = np.concatenate(target), np.hstack(design).T
+    y, x = np.concatenate([t.ravel() for t in target]), np.hstack(design).T
     energy = float(y @ y)
     if not (energy > 0 and np.all(np.isfinite(x))):
         return 0.0
@@ -382,8 +389,9 @@ def _twin(first: dict | None, rows: list[dict], fits: dict, preps: list[Prepared
     the two apart, and claiming ``first`` would name one of two effects by chance."""
     if first is None:
         return None
-    values = fits[first["effect"]].values[first["effect"]]
-    best = max(((r, reproduced(first["effect"], values, r["effect"], preps)) for r in rows if r is not first),
+    eid = first["effect"]
+    target, kind = contribution(eid, fits[eid].values[eid], preps), get_effect(eid).kind
+    best = max(((r, reproduced(target, kind, r["effect"], preps)) for r in rows if r is not first),
                key=lambda t: t[1], default=None)
     return best if best is not None and best[1] >= TWIN_SHARE else None
 
