@@ -150,6 +150,34 @@ def test_a_drive_reporting_its_command_one_sample_early_is_a_negative_delay(base
     assert "at bound" not in top.get("note", "") and "reach" not in top.get("note", "")
 
 
+@pytest.mark.parametrize("delay", [1.7, -1.6])
+def test_a_delay_beyond_one_sample_is_reached_by_moving_the_path(base80, delay):
+    """The delay's columns interpolate within one sample: a DAQ lag of 1.7 samples was read as 0.86
+    (the rest taken by the advance) before the path was moved by whole samples. Now named,
+    significant, within 0.2 sample, not at the columns' reach."""
+    recs = [simulate(GEAR, "healthy", (60.0, 100.0)[j % 2], SECONDS, seed=820 + j, effects={"voltage_delay": delay})
+            for j in range(4)]
+    doc = explain(base80, prepare(recs, GEAR))
+    top = _top(doc)
+    assert top["effect"] == "voltage_delay" and top["significant"] and not top["at_bound"], doc["candidates"][:2]
+    assert top["params"]["delay_samples"] == pytest.approx(delay, abs=0.2)
+    assert "reach" not in top.get("note", "")
+
+
+def test_moving_the_path_shifts_the_voltage_and_counts_it_in_the_totals():
+    """moved_path: v(m + n) with the ends held, the current untouched, the stated path plus n."""
+    from agent.workbench.fitting import moved_path
+
+    rec = simulate(GEAR, "healthy", 60.0, 0.2, seed=830)
+    (p,) = prepare([rec], GEAR)
+    (m,) = moved_path([p], 2)
+    assert np.allclose(m.sig.v_abc[:, :-2], p.sig.v_abc[:, 2:], rtol=0, atol=1e-9)  # through alpha-beta and back
+    assert np.allclose(m.sig.v_abc[:, -1], p.sig.v_abc[:, -1], rtol=0, atol=1e-9)
+    assert np.array_equal(m.sig.i_dq, p.sig.i_dq)
+    d0, a0 = p.meta.get("voltage_path") or (0.0, 0.0)
+    assert m.meta["voltage_path"] == (d0 + 2, a0)
+
+
 RIG = dict(rs=2.1, ld=15e-3, lq=28e-3, psi=0.25, p=4, w=2 * np.pi * 100, ts=4e-5)
 
 

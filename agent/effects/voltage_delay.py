@@ -7,7 +7,9 @@ rotor's dq frame over the interval (a continuous inverter, or the uncompensated 
 angle compensation) instead of in abc (PWM, what the model's mid-angle conversion assumes): the
 applied dq voltage is then the reported one turned by a omega_e T_s, a = +0.5 for a dq hold.
 
-Degrees of freedom (linear, exact for zero-order-held signals with |d| <= 1):
+Degrees of freedom (linear, exact for zero-order-held signals with |d| <= 1; a path further off is
+reached by moving the records' voltage by whole samples, ``MOVES``, and the columns' fraction on top:
+:func:`agent.workbench.fitting.moved_path`):
   d_lag >= 0 (samples, <= 2): the forward difference v(k+1) - v(k);
   d_lead >= 0 (samples, <= 1.5): minus the backward difference v(k) - v(k-1);
   advance a (samples, -1..1): j omega_e T_s v(k), the rotation.
@@ -32,6 +34,17 @@ from agent.effects.base import Effect, Param, mid_angle, phase_to_dq
 
 
 NEGLIGIBLE = 0.1  #: samples: a smaller change of the path is within the models' own timing approximations
+REACH = 0.5  #: samples: a fitted change of the rotation beyond this is refitted with the path moved by a whole sample
+MOVES = (-1, 2)  #: whole samples the path may be moved (a command reported a sample early .. a DAQ filter two samples late)
+
+
+def move_toward(values) -> int:
+    """+1 or -1: the whole sample by which a fit (d_lag, d_lead, advance) wants the path moved, the
+    sign of its rotation change d_lag - d_lead + a where that exceeds ``REACH``; 0 within reach.
+    The rotation, not the delay alone: at one speed with a smooth voltage the fit splits it freely
+    between delay and advance (a 1.8-sample delay fitted as 0.3 of delay and the advance at +1)."""
+    turn = float(values[0] - values[1] + values[2])
+    return int(np.sign(turn)) if abs(turn) > REACH else 0
 
 
 def columns(sig):
@@ -75,7 +88,8 @@ EFFECT = Effect(
             "load steps of 10 % or more reveal it then",
     raw=True, turns_voltage=True,
     at_bound="at the columns' reach: the fit wants the voltage path further from the stated one than its columns "
-             "follow (they interpolate within one sample, and turn by one omega_e T_s at most); the path may be "
+             "follow (they interpolate within one sample of the stated path or of that path moved by whole samples, "
+             "-1 to +2, and turn by one omega_e T_s at most); the path may be "
              "that far off, or another error of the model pulls it there, so no figure of it is given; where the "
              "drive's path is not known within a sample, state it (sampling.voltage_delay_samples, "
              "voltage_advance_samples) and explain again",

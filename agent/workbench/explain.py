@@ -35,7 +35,9 @@ from agent.effects import get as get_effect
 from agent.errors import InputError
 from agent.evidence import effective_size
 from agent.workbench.excitation import dynamics, no_dynamics_note
-from agent.workbench.fitting import NONLINEAR, Prepared, Refit, fit_cost, heldout, onto_rotor, pinned_keys, refit
+from agent.effects.voltage_delay import MOVES, move_toward
+from agent.workbench.fitting import (L_MAX_H, NONLINEAR, Prepared, Refit, fit_cost, heldout, moved_path, onto_rotor,
+                                     pinned_keys, refit)
 
 ALPHA = 0.01  #: family-wise significance level of the test over records
 MIN_RECORDS = 3  #: records needed for the test
@@ -176,6 +178,33 @@ def nested(ctrl: Refit, preps: list[Prepared], new: tuple, base: dict, prior: di
     for eid in new:
         out = _zero_effect(out, eid, r.at_bound.get(eid, False))
     return out
+
+
+def moved_delay(ctrl: Refit, preps: list[Prepared], r: Refit, base: dict, prior: dict | None = None
+                ) -> tuple[Refit, list[Prepared]]:
+    """voltage_delay's refit ``r`` where its rotation is more than half a sample off the stated path
+    (or its columns sit at their reach): refitted with the path moved by whole samples that way
+    (:func:`moved_path`, within ``MOVES``) while each move lowers the fit segments' cost and leaves
+    the current responding to the voltage (a move after which the one-step regression sees no
+    response on an axis, L at ``L_MAX_H``, lowered the cost of a no-encoder family drive by a base
+    that no longer models it: its held-out error went up 8-fold). Returns the best refit and the
+    records it was fitted on (``preps`` where no move helped)."""
+    step = move_toward(r.values["voltage_delay"])
+    best, best_preps = r, preps
+    for direction in ([step] if step else [1, -1] if r.at_bound.get("voltage_delay") else []):
+        n = 0
+        while MOVES[0] <= n + direction <= MOVES[1]:
+            n += direction
+            moved = moved_path(preps, n)
+            m = nested(ctrl, moved, ("voltage_delay",), base, prior)
+            if m.cost >= best.cost or any(m.phys[k] >= L_MAX_H > r.phys[k] for k in ("Ld", "Lq")):
+                break
+            best, best_preps = m, moved
+            if move_toward(m.values["voltage_delay"]) != direction:
+                break
+        if best is not r:
+            break
+    return best, best_preps
 
 
 def reported(eid: str, r: Refit, ctx: dict) -> dict:
@@ -352,12 +381,17 @@ def separable(first: str, other: str, preps: list[Prepared]) -> bool:
     return max(speeds) >= SPEED_SPREAD * max(min(speeds), 1e-9) or float(np.ptp(angles)) >= ANGLE_SPREAD
 
 
-def contribution(eid: str, values, preps: list[Prepared]) -> list[np.ndarray]:
+def contribution(eid: str, values, preps: list[Prepared], moved_from: list[Prepared] | None = None
+                 ) -> list[np.ndarray]:
     """Effect ``eid``'s contribution with parameters ``values`` on each record's fit segment, (2, N)
-    each, less its mean per axis (what the base's per-record flux and resistance take)."""
+    each, less its mean per axis (what the base's per-record flux and resistance take); where
+    ``preps`` are ``moved_from``'s with the voltage path moved (:func:`moved_delay`), the move's
+    change of the voltage included."""
     out = []
-    for p in preps:
+    for j, p in enumerate(preps):
         t = np.tensordot(np.asarray(values, float), get_effect(eid).cols(p.sig)[:, :, p.fit_slice], 1)
+        if moved_from is not None:
+            t = t + (p.sig.v_dq - moved_from[j].sig.v_dq)[:, p.fit_slice]
         out.append(t - t.mean(axis=-1, keepdims=True))
     return out
 
@@ -383,14 +417,17 @@ def reproduced(target: list[np.ndarray], kind: str, other: str, preps: list[Prep
     return float(max(0.0, 1.0 - (rest @ rest) / energy))
 
 
-def _twin(first: dict | None, rows: list[dict], fits: dict, preps: list[Prepared]) -> tuple[dict, float] | None:
+def _twin(first: dict | None, rows: list[dict], fits: dict, preps: list[Prepared], own: dict
+          ) -> tuple[dict, float] | None:
     """The candidate whose form reproduces at least ``TWIN_SHARE`` of the to-be-claimed ``first``'s
     fitted contribution on these records (:func:`reproduced`), if any: the records cannot tell
-    the two apart, and claiming ``first`` would name one of two effects by chance."""
+    the two apart, and claiming ``first`` would name one of two effects by chance. ``own``: effect
+    -> the records its refit was fitted on, where not ``preps``."""
     if first is None:
         return None
     eid = first["effect"]
-    target, kind = contribution(eid, fits[eid].values[eid], preps), get_effect(eid).kind
+    target = contribution(eid, fits[eid].values[eid], own.get(eid, preps), preps if eid in own else None)
+    kind = get_effect(eid).kind
     best = max(((r, reproduced(target, kind, r["effect"], preps)) for r in rows if r is not first),
                key=lambda t: t[1], default=None)
     return best if best is not None and best[1] >= TWIN_SHARE else None
@@ -408,16 +445,18 @@ def _claimable(row: dict) -> bool:
                 and (row["explained_fraction"] or 0.0) >= MIN_EXPLAINED)
 
 
-def _forward(rows: list[dict], fits: dict, preps: list[Prepared], base: dict, prior: dict) -> None:
+def _forward(rows: list[dict], fits: dict, preps: list[Prepared], base: dict, prior: dict, own: dict) -> None:
     """Forward selection after the ranking: with the significant effects accepted (their refit the
     new control), each remaining candidate that explained at least ``MIN_EXPLAINED`` on its own is
     refitted on top and tested again (Bonferroni over those still open, at ``ALPHA``). Two hidden
     effects: the second one's share is judged against a control that no longer carries the first,
     whose error differs from record to record (a delay's grows with the load) and hides it.
-    Marks such rows significant with ``given``: the effects accepted before."""
+    Marks such rows significant with ``given``: the effects accepted before. ``own``: effect -> the
+    records its refit was fitted on, where not ``preps`` (the first accepted's are used for all)."""
     accepted = [r["effect"] for r in rows if r["significant"]]
     if not accepted:
         return
+    preps = own.get(accepted[0], preps)
     open_rows = [r for r in rows if not r["significant"] and _claimable(r)]
     for row in list(open_rows):  # an effect these records cannot tell from an accepted one is not added on top
         twin = next((a for a in accepted if not separable(row["effect"], a, preps)), None)
@@ -489,8 +528,14 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
     # A control beyond any machine of the rating is no base to rank against, unless an effect's refit
     # makes the base physical (a delay misreads L_q until it is modelled; the other effects of the
     # records are ranked as well then: a second hidden effect cannot fix what the delay breaks).
+    fits = dict(zip(candidates, fits))
+    own = {}  # effect -> the records its refit was fitted on, where not preps: a voltage path moved by whole samples
+    if "voltage_delay" in fits:
+        r, moved = moved_delay(ctrl, preps, fits["voltage_delay"], base, prior)
+        if moved is not preps:
+            fits["voltage_delay"], own["voltage_delay"] = r, moved
     wrong = implausible_base(ctrl.phys, base, baseline.profile.motor)
-    if wrong is not None and all(implausible_base(r.phys, base, baseline.profile.motor) for r in fits):
+    if wrong is not None and all(implausible_base(r.phys, base, baseline.profile.motor) for r in fits.values()):
         return _unranked(baseline, preps, before, h_ctrl, dyn, wrong + (
             "; the baseline does not pin L_q either: give the nameplate (nameplate.lq_h) or records with an "
             "encoder angle" if "Lq" not in prior else "") + (
@@ -498,8 +543,8 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
             "flux takes any steady q voltage) or by the nameplate (nameplate.rs_ohm)"
             if "Rs_q" in wrong and "Rs" not in prior else ""), t0)
     rows, p_values, held = [], [], []
-    for eid, r in zip(candidates, fits):
-        h = heldout(r.model, preps)
+    for eid, r in fits.items():
+        h = heldout(r.model, own.get(eid, preps))
         held.append(h)
         identifiable, how = r.identifiable[eid]
         bound = r.at_bound.get(eid, False)
@@ -508,10 +553,10 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
                "significant": False, "p_value": p_values[-1], "identifiable": identifiable, "at_bound": bound,
                "nrmse_after_dq": _dq(h), "identifiability": how,
                "effect_size": effect_size(h_ctrl, h, _total(h_ctrl), _total(h)),
-               **reported(eid, r, context(r, preps, baseline.profile))}
+               **reported(eid, r, context(r, own.get(eid, preps), baseline.profile))}
         if not identifiable:
             row["note"] = unidentified_note(eid, how)
-        elif get_effect(eid).negligible(r.values[eid]):
+        elif eid not in own and get_effect(eid).negligible(r.values[eid]):  # a moved path is a whole sample off
             row["negligible"] = True
             row["note"] = "; ".join(filter(None, [row.get("note"), (
                 "negligible: its fitted size is below what the base model's own approximations leave "
@@ -536,7 +581,7 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
             f"not claimed: {rival['effect']} fits the held-out records better (NRMSE {100 * rival['nrmse_after']:.3g} % "
             f"against {100 * first['nrmse_after']:.3g} %) but these records cannot pin it ({rival.get('note', '')})")])))
         first = None
-    twin = _twin(first, rows, dict(zip(candidates, fits)), preps)
+    twin = _twin(first, rows, fits, preps, own)
     if twin is not None:  # another effect's form makes the same contribution: no claim, and what separates them
         first.update(significant=False, twin={"effect": twin[0]["effect"], "reproduced": twin[1]}, note="; ".join(
             filter(None, [first.get("note"), twin_note(first["effect"], twin[0]["effect"], twin[1])])))
@@ -544,7 +589,7 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
     for row in rows:
         if row["significant"] and row is not first:
             row.update(significant=False, alone_significant=True)
-    _forward(rows, dict(zip(candidates, fits)), preps, base, prior)
+    _forward(rows, fits, preps, base, prior, own)
     for row in rows:
         if row.pop("alone_significant", False) and not row["significant"]:
             row["note"] = "; ".join(filter(None, [row.get("note"), (

@@ -1057,6 +1057,21 @@ def onto_rotor(preps: list[Prepared], lq: float, rs: float = 0.0) -> list[Prepar
     return turned if angles and np.mean(angles) > FRAME_MIN_RAD else preps
 
 
+def moved_path(preps: list[Prepared], samples: int) -> list[Prepared]:
+    """``preps`` with the voltage path moved by whole ``samples``: v_applied(m) = v(m + samples) (the
+    ends held, :func:`agent.voltage_path.apply_path`), and ``meta["voltage_path"]`` moved alike, so a
+    voltage_delay fit on them reports totals. The delay's columns interpolate within one sample; a
+    path further off than that is reached by a whole-sample move and the columns' fraction on top."""
+    from agent.voltage_path import apply_path
+
+    out = []
+    for p in preps:
+        d0, a0 = p.meta.get("voltage_path") or (0.0, 0.0)
+        out.append(replace(p, sig=apply_path(p.sig, float(samples), 0.0),
+                           meta={**p.meta, "voltage_path": (d0 + samples, a0)}))
+    return out
+
+
 FRAME_MAX = 0.7  #: a current frame's psi_q at most this share of psi_m's upper bound (45 degrees)
 FRAME_MIN_RAD = np.radians(2.0)  #: a current frame is turned onto the rotor's beyond this mean angle (:func:`onto_rotor`)
 
