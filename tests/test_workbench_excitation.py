@@ -118,3 +118,30 @@ def test_a_drive_whose_records_pin_no_inductance_gets_that_answer():
             assert doc["candidates"] == [] and "base model is not identified" in doc["note"], doc.get("note")
             assert "nameplate.lq_h" in doc["note"] and "encoder angle" in doc["note"]
             assert "Rs_q" in doc["note"] and "load step" in doc["note"] and "nameplate.rs_ohm" in doc["note"]
+
+
+@pytest.mark.parametrize("inverter", ["switched", "averaged"])
+def test_a_voltage_the_current_does_not_follow_is_named_as_the_cause(inverter):
+    """A family drive (bench.family 20017: constant references, no encoder, a measured voltage sampled
+    at an instant, asynchronously to its PWM): its voltage varies 27 times its noise, yet neither
+    inductance is pinned and the base refit runs to Rs_q 100 ohm, Lq 10 H. The answer names the
+    cause, a measured voltage that is not the winding's interval mean. Checked against the same
+    drive with an averaged inverter (no switching pulses in the samples): ranked, nothing claimed."""
+    import dataclasses
+
+    from bench.family import draw_drive, profile
+    from bench.family import simulate as simulate_family
+
+    drive = dataclasses.replace(draw_drive(20017), inverter=inverter)
+    prof = profile(drive, timing=True)
+    base = identify_baseline([simulate_family(drive, {}, 80.0, 1.0, seed=100 + j) for j in range(4)], prof,
+                             window_s=0.5)
+    doc = explain(base, prepare([simulate_family(drive, {}, load, 1.0, seed=200 + j)
+                                 for j, load in enumerate((40.0, 60.0, 90.0, 100.0))], prof))
+    assert not any(c["significant"] for c in doc["candidates"])
+    if inverter == "averaged":
+        assert doc["candidates"] and not doc.get("note")
+    else:
+        assert not doc["candidates"], doc["candidates"][:1]
+        assert "not identified by these records" in doc["note"]
+        assert "does not follow it as a winding would" in doc["note"] and "switching pulses" in doc["note"]

@@ -50,3 +50,20 @@ def no_dynamics_note(dyn: dict) -> str:
     return (f"these records carry almost no dynamics (voltage spread {dyn['voltage_spread_v']:.3g} V against noise "
             f"{dyn['voltage_noise_v']:.3g} V): record {' and '.join(REVEALED_BY[k][0] for k in keys)}, or give the "
             f"nameplate ({', '.join(REVEALED_BY[k][1] for k in keys)})")
+
+
+def unfollowed_note(dyn: dict, voltage_source: str) -> str:
+    """Why the records pin no inductance although their voltage varies (spread at least ``SPREAD_MIN``
+    times its noise): the current does not follow that voltage as a winding would. Empty where the
+    voltage is quiet (:func:`no_dynamics_note` answers then) or the inductances are pinned."""
+    if not dyn["unpinned"] or dyn["voltage_spread_v"] < SPREAD_MIN * dyn["voltage_noise_v"]:
+        return ""
+    key = max(dyn["unpinned"], key=lambda k: dyn["inductance_rel_se"][k])
+    cause = ("a measured voltage that is not the mean the winding integrates over each sample (switching pulses "
+             "taken at an instant, a filter the profile does not state): a voltage channel averaged over each "
+             "sampling interval, or the drive's voltage command (sampling.voltage_source = \"reference\"), would "
+             "carry it" if voltage_source == "measured" else
+             "a voltage path the model lacks (state it: sampling.voltage_delay_samples, voltage_advance_samples)")
+    return (f"the voltage varies ({dyn['voltage_spread_v']:.3g} V against noise {dyn['voltage_noise_v']:.3g} V) but the "
+            f"current does not follow it as a winding would ({key[0]}_{key[1]}'s one-step relative sd "
+            f"{dyn['inductance_rel_se'][key]:.0%}): {cause}")

@@ -34,7 +34,7 @@ from agent.effects import EFFECTS
 from agent.effects import get as get_effect
 from agent.errors import InputError
 from agent.evidence import effective_size
-from agent.workbench.excitation import dynamics, no_dynamics_note
+from agent.workbench.excitation import dynamics, no_dynamics_note, unfollowed_note
 from agent.effects.voltage_delay import MOVES, move_toward
 from agent.workbench.fitting import (L_MAX_H, NONLINEAR, Prepared, Refit, fit_cost, heldout, moved_path, onto_rotor,
                                      pinned_keys, refit)
@@ -536,12 +536,13 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
             fits["voltage_delay"], own["voltage_delay"] = r, moved
     wrong = implausible_base(ctrl.phys, base, baseline.profile.motor)
     if wrong is not None and all(implausible_base(r.phys, base, baseline.profile.motor) for r in fits.values()):
-        return _unranked(baseline, preps, before, h_ctrl, dyn, wrong + (
-            "; the baseline does not pin L_q either: give the nameplate (nameplate.lq_h) or records with an "
-            "encoder angle" if "Lq" not in prior else "") + (
-            "; R_s,q is pinned by records with a load step (the q current's time constant: each record's magnet "
-            "flux takes any steady q voltage) or by the nameplate (nameplate.rs_ohm)"
-            if "Rs_q" in wrong and "Rs" not in prior else ""), t0)
+        why = [wrong, "the baseline does not pin L_q either: give the nameplate (nameplate.lq_h) or records with an "
+                      "encoder angle" if "Lq" not in prior else "",
+               "R_s,q is pinned by records with a load step (the q current's time constant: each record's magnet "
+               "flux takes any steady q voltage) or by the nameplate (nameplate.rs_ohm)"
+               if "Rs_q" in wrong and "Rs" not in prior else "",
+               unfollowed_note(dyn, baseline.profile.sampling.voltage_source)]
+        return _unranked(baseline, preps, before, h_ctrl, dyn, "; ".join(filter(None, why)), t0)
     rows, p_values, held = [], [], []
     for eid, r in fits.items():
         h = heldout(r.model, own.get(eid, preps))
