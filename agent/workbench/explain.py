@@ -36,7 +36,7 @@ from agent.errors import InputError
 from agent.evidence import effective_size
 from agent.workbench.excitation import dynamics, no_dynamics_note, unfollowed_note
 from agent.effects.voltage_delay import MOVES, move_toward
-from agent.workbench.fitting import (L_MAX_H, NONLINEAR, Prepared, Refit, fit_cost, heldout, moved_path, onto_rotor,
+from agent.workbench.fitting import (CONFLICT_SD, L_MAX_H, NONLINEAR, Prepared, Refit, fit_cost, heldout, moved_path, onto_rotor,
                                      pinned_keys, refit)
 
 ALPHA = 0.01  #: family-wise significance level of the test over records
@@ -180,15 +180,31 @@ def nested(ctrl: Refit, preps: list[Prepared], new: tuple, base: dict, prior: di
     return out
 
 
+def keeps_inductances(moved: Refit, r: Refit, prior: dict) -> bool:
+    """Whether a moved voltage path's refit keeps the base the unmoved one had: the current still
+    responds to the voltage on each axis (the one-step regression below ``L_MAX_H``), and an
+    inductance that agreed with the baseline's (within ``CONFLICT_SD`` of its relative sd) still
+    does. A move that needs another base is not a path: on a no-encoder family drive a move
+    lowered the fit cost with L_d at 10 H and raised the held-out error 8-fold; on a null drive
+    whose baseline L_q the control kept, a move took it 40 % lower and was claimed."""
+    for k in ("Ld", "Lq"):
+        if moved.phys[k] >= L_MAX_H > r.phys[k]:
+            return False
+        if k in prior:
+            value, rel = prior[k]
+            far = [abs(np.log(x.phys[k] / value)) > CONFLICT_SD * rel for x in (moved, r)]
+            if far[0] and not far[1]:
+                return False
+    return True
+
+
 def moved_delay(ctrl: Refit, preps: list[Prepared], r: Refit, base: dict, prior: dict | None = None
                 ) -> tuple[Refit, list[Prepared]]:
     """voltage_delay's refit ``r`` where its rotation is more than half a sample off the stated path
     (or its columns sit at their reach): refitted with the path moved by whole samples that way
-    (:func:`moved_path`, within ``MOVES``) while each move lowers the fit segments' cost and leaves
-    the current responding to the voltage (a move after which the one-step regression sees no
-    response on an axis, L at ``L_MAX_H``, lowered the cost of a no-encoder family drive by a base
-    that no longer models it: its held-out error went up 8-fold). Returns the best refit and the
-    records it was fitted on (``preps`` where no move helped)."""
+    (:func:`moved_path`, within ``MOVES``) while each move lowers the fit segments' cost and keeps
+    the inductances (:func:`keeps_inductances`). Returns the best refit and the records it was
+    fitted on (``preps`` where no move helped)."""
     step = move_toward(r.values["voltage_delay"])
     best, best_preps = r, preps
     for direction in ([step] if step else [1, -1] if r.at_bound.get("voltage_delay") else []):
@@ -197,7 +213,7 @@ def moved_delay(ctrl: Refit, preps: list[Prepared], r: Refit, base: dict, prior:
             n += direction
             moved = moved_path(preps, n)
             m = nested(ctrl, moved, ("voltage_delay",), base, prior)
-            if m.cost >= best.cost or any(m.phys[k] >= L_MAX_H > r.phys[k] for k in ("Ld", "Lq")):
+            if m.cost >= best.cost or not keeps_inductances(m, r, prior or {}):
                 break
             best, best_preps = m, moved
             if move_toward(m.values["voltage_delay"]) != direction:
@@ -205,6 +221,14 @@ def moved_delay(ctrl: Refit, preps: list[Prepared], r: Refit, base: dict, prior:
         if best is not r:
             break
     return best, best_preps
+
+
+def path_change(values, preps: list[Prepared], moved: list[Prepared]) -> np.ndarray:
+    """A moved voltage_delay fit's ``values`` (d_lag, d_lead, advance) as the unmoved columns would
+    hold its whole change from the stated path: the move's samples plus the columns' delay."""
+    n = moved[0].meta["voltage_path"][0] - (preps[0].meta.get("voltage_path") or (0.0, 0.0))[0]
+    change = n + float(values[0] - values[1])
+    return np.array([max(change, 0.0), max(-change, 0.0), float(values[2])])
 
 
 def reported(eid: str, r: Refit, ctx: dict) -> dict:
@@ -529,12 +553,12 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
     # makes the base physical (a delay misreads L_q until it is modelled; the other effects of the
     # records are ranked as well then: a second hidden effect cannot fix what the delay breaks).
     fits = dict(zip(candidates, fits))
+    wrong = implausible_base(ctrl.phys, base, baseline.profile.motor)
     own = {}  # effect -> the records its refit was fitted on, where not preps: a voltage path moved by whole samples
-    if "voltage_delay" in fits:
+    if "voltage_delay" in fits and wrong is None:  # on a control beyond the rating a move only finds another base
         r, moved = moved_delay(ctrl, preps, fits["voltage_delay"], base, prior)
         if moved is not preps:
             fits["voltage_delay"], own["voltage_delay"] = r, moved
-    wrong = implausible_base(ctrl.phys, base, baseline.profile.motor)
     if wrong is not None and all(implausible_base(r.phys, base, baseline.profile.motor) for r in fits.values()):
         why = [wrong, "the baseline does not pin L_q either: give the nameplate (nameplate.lq_h) or records with an "
                       "encoder angle" if "Lq" not in prior else "",
@@ -557,7 +581,7 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
                **reported(eid, r, context(r, own.get(eid, preps), baseline.profile))}
         if not identifiable:
             row["note"] = unidentified_note(eid, how)
-        elif eid not in own and get_effect(eid).negligible(r.values[eid]):  # a moved path is a whole sample off
+        elif get_effect(eid).negligible(path_change(r.values[eid], preps, own.get(eid)) if eid in own else r.values[eid]):
             row["negligible"] = True
             row["note"] = "; ".join(filter(None, [row.get("note"), (
                 "negligible: its fitted size is below what the base model's own approximations leave "
