@@ -35,7 +35,7 @@ from agent.effects import get as get_effect
 from agent.errors import InputError
 from agent.evidence import effective_size
 from agent.workbench.excitation import dynamics, no_dynamics_note, unfollowed_note
-from agent.effects.voltage_delay import MOVES, move_toward
+from agent.effects.voltage_delay import MOVES, REACH, move_toward
 from agent.workbench.fitting import (CONFLICT_SD, L_MAX_H, NONLINEAR, Prepared, Refit, fit_cost, heldout, moved_path, onto_rotor,
                                      pinned_keys, refit)
 
@@ -202,9 +202,12 @@ def moved_delay(ctrl: Refit, preps: list[Prepared], r: Refit, base: dict, prior:
                 ) -> tuple[Refit, list[Prepared]]:
     """voltage_delay's refit ``r`` where its rotation is more than half a sample off the stated path
     (or its columns sit at their reach): refitted with the path moved by whole samples that way
-    (:func:`moved_path`, within ``MOVES``) while each move lowers the fit segments' cost and keeps
-    the inductances (:func:`keeps_inductances`). Returns the best refit and the records it was
-    fitted on (``preps`` where no move helped)."""
+    (:func:`moved_path`, within ``MOVES``) while each move lowers the fit segments' cost, its fit's
+    whole delay change (the move and the columns') stays beyond ``REACH`` that way (else the
+    columns alone hold it, and the gain is another base's: a null family drive whose control sat at
+    R_s 2000 ohm went back to its stated path, -1 + 0.92 samples, with a base 100 times nearer) and
+    it keeps the inductances (:func:`keeps_inductances`). Returns the best refit and the records it
+    was fitted on (``preps`` where no move helped)."""
     step = move_toward(r.values["voltage_delay"])
     best, best_preps = r, preps
     for direction in ([step] if step else [1, -1] if r.at_bound.get("voltage_delay") else []):
@@ -213,7 +216,8 @@ def moved_delay(ctrl: Refit, preps: list[Prepared], r: Refit, base: dict, prior:
             n += direction
             moved = moved_path(preps, n)
             m = nested(ctrl, moved, ("voltage_delay",), base, prior)
-            if m.cost >= best.cost or not keeps_inductances(m, r, prior or {}):
+            change = n + float(m.values["voltage_delay"][0] - m.values["voltage_delay"][1])
+            if m.cost >= best.cost or direction * change <= REACH or not keeps_inductances(m, r, prior or {}):
                 break
             best, best_preps = m, moved
             if move_toward(m.values["voltage_delay"]) != direction:
@@ -555,7 +559,7 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
     fits = dict(zip(candidates, fits))
     wrong = implausible_base(ctrl.phys, base, baseline.profile.motor)
     own = {}  # effect -> the records its refit was fitted on, where not preps: a voltage path moved by whole samples
-    if "voltage_delay" in fits and wrong is None:  # on a control beyond the rating a move only finds another base
+    if "voltage_delay" in fits:
         r, moved = moved_delay(ctrl, preps, fits["voltage_delay"], base, prior)
         if moved is not preps:
             fits["voltage_delay"], own["voltage_delay"] = r, moved
