@@ -32,12 +32,12 @@ import scipy.stats
 from agent.decision import operating_point_notes
 from agent.effects import EFFECTS
 from agent.effects import get as get_effect
+from agent.effects.voltage_delay import MOVES, REACH, move_toward
 from agent.errors import InputError
 from agent.evidence import effective_size
 from agent.workbench.excitation import dynamics, no_dynamics_note, unfollowed_note
-from agent.effects.voltage_delay import MOVES, REACH, move_toward
-from agent.workbench.fitting import (CONFLICT_SD, L_MAX_H, NONLINEAR, Prepared, Refit, fit_cost, heldout, moved_path, onto_rotor,
-                                     pinned_keys, refit)
+from agent.workbench.fitting import (CONFLICT_SD, L_MAX_H, NONLINEAR, Prepared, Refit, fit_cost, heldout, moved_path,
+                                     onto_rotor, pinned_keys, refit)
 
 ALPHA = 0.01  #: family-wise significance level of the test over records
 MIN_RECORDS = 3  #: records needed for the test
@@ -216,8 +216,8 @@ def moved_delay(ctrl: Refit, preps: list[Prepared], r: Refit, base: dict, prior:
             n += direction
             moved = moved_path(preps, n)
             m = nested(ctrl, moved, ("voltage_delay",), base, prior)
-            change = n + float(m.values["voltage_delay"][0] - m.values["voltage_delay"][1])
-            if m.cost >= best.cost or direction * change <= REACH or not keeps_inductances(m, r, prior or {}):
+            lag, lead, _ = path_change(m.values["voltage_delay"], preps, moved)
+            if m.cost >= best.cost or direction * (lag - lead) <= REACH or not keeps_inductances(m, r, prior or {}):
                 break
             best, best_preps = m, moved
             if move_toward(m.values["voltage_delay"]) != direction:
