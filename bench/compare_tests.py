@@ -9,8 +9,9 @@ sums of ten), and judges each set three ways with explain's gates (identifiable,
 not negligible, 10 % explained) and Holm's correction at 1 %:
 
 * over records (explain's :func:`agent.workbench.explain.block_p`);
-* every record on its own: each record's blocks tested alone (their autocorrelation within the
-  record, Geyer's initial positive sequence), the largest of the records' p (intersection-union);
+* every record on its own: each record's blocks tested alone (:func:`agent.evidence.effective_size`
+  of that record: its autocorrelation within the record), the largest of the records' p
+  (intersection-union);
 * Fisher's combination of the records' own p.
 
 Prints, per test, how many null drives claim, how often the hidden effect is first and
@@ -105,44 +106,28 @@ def run_drive(args: tuple) -> list[dict]:
     return out
 
 
-def _t_p(mean: float, var: float, n: float) -> float:
-    if mean <= 0:
-        return 1.0
-    if var == 0:
-        return 0.0
-    return float(scipy.stats.t.sf(mean / np.sqrt(var / n), max(n - 1.0, 1.0)))
-
-
-def _within(x: np.ndarray) -> tuple[float, float, float]:
-    """(mean, variance, effective size) of one record's blocks (Geyer's initial positive sequence)."""
-    d = x - x.mean()
-    g0 = float(d @ d) / x.size
-    if g0 <= 0:
-        return float(x.mean()), 0.0, float(x.size)
-    s = 0.0
-    for k in range(1, x.size):
-        rho = float(d[k:] @ d[:-k]) / x.size / g0
-        if rho <= 0:
-            break
-        s += rho
-    return float(x.mean()), g0, float(np.clip(x.size / (1 + 2 * s), 1.0, x.size))
-
-
 def records_p(ctrl: dict, cand: dict) -> list[float]:
     """Each record's own one-sided p that the candidate lowers its held-out error."""
+    from agent.evidence import effective_size
+    from agent.workbench.explain import one_sided_p
+
     ps = []
     for a, fa, b, fb in zip(ctrl["a"], ctrl["fa"], cand["b"], cand["fb"]):
         a, fa, b, fb = map(np.asarray, (a, fa, b, fb))
-        ps.append(_t_p(*_within((a - b - fa + fb) / max(float(np.mean(a)), 1e-300))))
+        ps.append(one_sided_p(*effective_size([(a - b - fa + fb) / max(float(np.mean(a)), 1e-300)])))  # one record
     return ps
+
+
+def _held(r: dict, key: str, floor_key: str) -> dict:
+    """A recorded set's blocks as :func:`agent.workbench.fitting.heldout` gives them, at explain's length."""
+    return _coarse({"stable": True, "records": [np.asarray(x) for x in r[key]],
+                    "floor_records": [np.asarray(x) for x in r[floor_key]]})
 
 
 def over_records(ctrl: dict, cand: dict) -> float:
     from agent.workbench.explain import block_p
 
-    as_h = lambda r, key, fkey: {"stable": True, "records": [np.asarray(x) for x in r[key]],  # noqa: E731
-                                  "floor_records": [np.asarray(x) for x in r[fkey]]}
-    return block_p(_coarse(as_h(ctrl, "a", "fa")), _coarse(as_h(cand, "b", "fb")))
+    return block_p(_held(ctrl, "a", "fa"), _held(cand, "b", "fb"))
 
 
 TESTS = {"over records (explain's)": over_records,

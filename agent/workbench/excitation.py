@@ -66,4 +66,4 @@ def unfollowed_note(dyn: dict, voltage_source: str) -> str:
              "a voltage path the model lacks (state it: sampling.voltage_delay_samples, voltage_advance_samples)")
     return (f"the voltage varies ({dyn['voltage_spread_v']:.3g} V against noise {dyn['voltage_noise_v']:.3g} V) but the "
             f"current does not follow it as a winding would ({key[0]}_{key[1]}'s one-step relative sd "
-            f"{dyn['inductance_rel_se'][key]:.0%}): {cause}")
+            f"{dyn['inductance_rel_se'][key]:.0%}); the likely cause: {cause}")

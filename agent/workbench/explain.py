@@ -283,7 +283,11 @@ def block_p(ctrl: dict, cand: dict) -> float:
     (1 when fewer than ``MIN_RECORDS`` records or either free run is unstable)."""
     if not (ctrl["stable"] and cand["stable"]) or len(ctrl["records"]) < MIN_RECORDS:
         return 1.0
-    mean, var, n_eff = effective_size(_block_shares(ctrl, cand))
+    return one_sided_p(*effective_size(_block_shares(ctrl, cand)))
+
+
+def one_sided_p(mean: float, var: float, n_eff: float) -> float:
+    """One-sided p of a mean above 0 from its samples' variance and effective size (t, n_eff - 1 dof)."""
     if mean <= 0:
         return 1.0
     if var == 0:
