@@ -164,6 +164,23 @@ def test_a_delay_beyond_one_sample_is_reached_by_moving_the_path(base80, delay):
     assert "reach" not in top.get("note", "")
 
 
+def test_no_move_is_tried_where_the_delay_columns_explain_nothing(base80, monkeypatch):
+    """A hidden flux harmonic leaves the delay's columns at their reach with no gain: that is no
+    sign of a path off the stated one, and moving it would be a refit per direction for nothing
+    (on the drive family such moves claimed the delay for a hidden flux harmonic and for a
+    saturation)."""
+    import agent.workbench.explain as explain_module
+
+    moves = []
+    monkeypatch.setattr(explain_module, "moved_path", lambda preps, n: moves.append(n) or [])
+    recs = [simulate(GEAR, "healthy", (60.0, 100.0)[j % 2], SECONDS, seed=950 + j, effects={"flux_harmonics": None})
+            for j in range(4)]
+    doc = explain(base80, prepare(recs, GEAR))
+    delay = next(c for c in doc["candidates"] if c["effect"] == "voltage_delay")
+    assert _top(doc)["effect"] == "flux_harmonics" and not delay["significant"]
+    assert delay["nrmse_after"] >= doc["nrmse_control"] * (1 - 1e-9) and moves == []
+
+
 def test_moving_the_path_shifts_the_voltage_and_counts_it_in_the_totals():
     """moved_path: v(m + n) with the ends held, the current untouched, the stated path plus n."""
     from agent.workbench.fitting import moved_path

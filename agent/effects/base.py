@@ -12,6 +12,23 @@ from agent.frames import CLARKE, ab_to_dq, dq_to_abc
 from agent.model import Signals, Term
 
 
+class ByIdentity:
+    """The last ``size`` results of ``make(obj)``, keyed by the object's identity (Signals are
+    arrays' holders, neither hashable nor changed after they are built)."""
+
+    def __init__(self, size: int):
+        self.size, self.items = size, []
+
+    def get(self, obj, make):
+        for k, (o, value) in enumerate(self.items):
+            if o is obj:
+                self.items.append(self.items.pop(k))
+                return value
+        value = make(obj)
+        self.items[:] = self.items[1 - self.size:] + [(obj, value)]
+        return value
+
+
 @dataclass(frozen=True)
 class Param:
     """One linear parameter of an effect: its name, unit, meaning, a typical magnitude (used to
@@ -72,7 +89,7 @@ class Effect:
     raw: bool = False  #: its columns carry the measured samples' white noise (not only the smoothed current)
     turns_voltage: bool = False  #: a column turns the voltage (the one-step regression then uses zoh2 columns)
     at_bound: str = ""  #: what a fit on a bound means for this effect, where it is not "beyond physics"
-    _cache: list = field(default_factory=lambda: [None, None], compare=False, repr=False)
+    _cache: ByIdentity = field(default_factory=lambda: ByIdentity(8), compare=False, repr=False)
 
     def __post_init__(self):
         if self.kind not in ("voltage", "output"):
@@ -88,10 +105,9 @@ class Effect:
         return bool(np.all(np.abs(np.asarray(values, float))[floors > 0] < floors[floors > 0]))
 
     def cols(self, sig: Signals) -> np.ndarray:
-        """``columns(sig)``, cached for the last Signals object (each term asks for its own row)."""
-        if self._cache[0] is not sig:
-            self._cache[:] = [sig, np.asarray(self.columns(sig), dtype=float)]
-        return self._cache[1]
+        """``columns(sig)``, cached for the last 8 Signals objects (each term asks for its own row,
+        and a fit visits its records in turn)."""
+        return self._cache.get(sig, lambda s: np.asarray(self.columns(s), dtype=float))
 
     def terms(self) -> tuple[tuple[Term, ...], tuple[Term, ...]]:
         """dq-model terms: one d and one q column per parameter (``output`` terms for output effects).
@@ -128,12 +144,20 @@ def amplitude(values) -> float:
 SMOOTH_HZ = 2.0  #: Hz, cut-off of the current used inside effect columns (its operating level)
 
 
+_SMOOTHED = ByIdentity(16)
+
+
 def smooth_current(sig: Signals) -> tuple[np.ndarray, np.ndarray]:
     """The current's slow part: dq (2, N) low-passed at ``SMOOTH_HZ`` (zero phase) and its phases (3, N).
 
     Effect columns built from the measured current would feed the measurement (its noise and the
     ripple the model should predict) back into a free-run prediction; the operating current
-    (level, fundamental, zero crossings) is what the effects depend on."""
+    (level, fundamental, zero crossings) is what the effects depend on. Cached per Signals object
+    (several effects ask for it)."""
+    return _SMOOTHED.get(sig, _smooth)
+
+
+def _smooth(sig: Signals) -> tuple[np.ndarray, np.ndarray]:
     sos = butter(2, SMOOTH_HZ, fs=1.0 / sig.ts, output="sos")
     i_dq = sosfiltfilt(sos, sig.i_dq, axis=1) if sig.n > 30 else sig.i_dq
     return i_dq, dq_to_abc(i_dq, sig.theta_e)
