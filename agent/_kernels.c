@@ -227,9 +227,9 @@ static inline double finite_or_max(double x)
  *            pll_state as pll_run's (the state updated in place).
  * unwrapped (n,), written: the angle unwrapped continuing theta_last (np.unwrap's result: a step
  *            of pi or more is taken back by whole turns).
- * rows (12, n), written (float when f32, else double): va vb vc ia ib ic omega i_d i_q v_d v_q
- *            p_in (pipeline._ROWS): the phases, the Park rotations of the currents at the angle and
- *            of the voltages at the mid angle, the input power v.i (W).
+ * rows (11, n), written (float when f32, else double): va vb vc ia ib ic omega i_d i_q v_d v_q
+ *            (kernels.ROWS): the phases, the Park rotations of the currents at the angle and
+ *            of the voltages at the mid angle (the input power v.i is summed from the phases).
  * Returns 1 when a sample is NaN or saturated, else 0.
  */
 int block_rows(const double *i_abc, const double *v_abc, ptrdiff_t n, const double *clarke, const double *limits,
@@ -268,11 +268,10 @@ int block_rows(const double *i_abc, const double *v_abc, ptrdiff_t n, const doub
         const double v_al = c_aa * va + c_ab * vb + c_ac * vc, v_be = c_ba * va + c_bb * vb + c_bc * vc;
         const double i_d = i_al * a[2] + i_be * a[3], i_q = -i_al * a[3] + i_be * a[2];
         const double v_d = v_al * a[4] + v_be * a[5], v_q = -v_al * a[5] + v_be * a[4];
-        const double p_in = va * ia + vb * ib + vc * ic;
 #define STORE_ROWS(r)                                                                                   \
     (r[k] = va, r[n + k] = vb, r[2 * n + k] = vc, r[3 * n + k] = ia, r[4 * n + k] = ib, r[5 * n + k] = ic, \
      r[6 * n + k] = a[1], r[7 * n + k] = i_d, r[8 * n + k] = i_q, r[9 * n + k] = v_d,                   \
-     r[10 * n + k] = v_q, r[11 * n + k] = p_in)
+     r[10 * n + k] = v_q)
         if (f32)
             STORE_ROWS(r32); /* rounded to float */
         else
@@ -340,8 +339,8 @@ void ltv_residuals(const double *a0, const double *a1, const double *omega, cons
 /* Sums over n samples of the signal ring from column start (wrapping at n_ring), for the span's
  * operating point, running check and torque regression (pipeline.HopSums).
  *
- * ring (12, n_ring) (float when f32, else double): the rows of block_rows. theta_ring (n_ring,).
- * out (15,), written: power, omega, i_q, i_d i_q, i_d^2 + i_q^2 (sums), the minima of i_d, i_q, their
+ * ring (11, n_ring) (float when f32, else double): the rows of block_rows. theta_ring (n_ring,).
+ * out (15,), written: power (v.i of the phases as stored), omega, i_q, i_d i_q, i_d^2 + i_q^2 (sums), the minima of i_d, i_q, their
  *            maxima (NaN when a sample is NaN), the angle's mean, then the sums of dth^2,
  *            dth omega, dth power, omega^2, omega power, dth being the angle less its mean.
  */
@@ -359,7 +358,9 @@ void ring_sums(const void *ring, int f32, ptrdiff_t n_ring, const double *theta_
 #define SUM_RING(r)                                                                                  \
     for (ptrdiff_t k = 0, j = start; k < n; ++k, j = j + 1 == n_ring ? 0 : j + 1) {                  \
         const double om = r[6 * n_ring + j], i_d = r[7 * n_ring + j], i_q = r[8 * n_ring + j];       \
-        const double pw = r[11 * n_ring + j], dth = theta_ring[j] - mean;                            \
+        const double pw = (double)r[j] * r[3 * n_ring + j] + (double)r[n_ring + j] * r[4 * n_ring + j] \
+                          + (double)r[2 * n_ring + j] * r[5 * n_ring + j];                           \
+        const double dth = theta_ring[j] - mean;                                                     \
         p += pw;                                                                                     \
         w += om;                                                                                     \
         iq += i_q;                                                                                   \

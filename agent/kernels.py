@@ -57,7 +57,7 @@ _lib.ring_sums.argtypes = [ctypes.c_void_p, ctypes.c_int, ctypes.c_ssize_t, _IN,
                            ctypes.c_ssize_t, _OUT]
 
 #: The rows :func:`block_rows` writes (agent.pipeline's signal ring).
-ROWS = ("va", "vb", "vc", "ia", "ib", "ic", "omega_e", "i_d", "i_q", "v_d", "v_q", "p_in")
+ROWS = ("va", "vb", "vc", "ia", "ib", "ic", "omega_e", "i_d", "i_q", "v_d", "v_q")
 
 LTV_RUNS = 8  #: the most free runs :func:`ltv_residuals` takes at once (agent/_kernels.c's)
 #: Length of the PLL's parameter vector and of its state vector.
@@ -133,9 +133,9 @@ def _rows_dtype(a: np.ndarray, shape: tuple[int, int], name: str) -> int:
 
 
 def block_rows(i_abc, v_abc, clarke, limits, theta_last: float, rows: np.ndarray, angle=None, pll=None):
-    """One block of the streaming pipeline's signal rows in one pass; writes ``rows`` ``(12, N)``
+    """One block of the streaming pipeline's signal rows in one pass; writes ``rows`` ``(11, N)``
     (float32 or float64, :data:`ROWS`: the phases, speed, the currents' Park rotation at the angle,
-    the voltages' at the mid angle, input power in W) from ``i_abc``, ``v_abc`` ``(3, N)`` (A, V).
+    the voltages' at the mid angle) from ``i_abc``, ``v_abc`` ``(3, N)`` (A, V).
 
     The angle is either ``angle`` ``(6, N)``: angle (rad), speed (rad/s), cos and sin of the angle
     and of the mid angle angle + Ts speed / 2; or the PLL's over the currents (non-finite samples
@@ -162,7 +162,7 @@ def block_rows(i_abc, v_abc, clarke, limits, theta_last: float, rows: np.ndarray
 
 
 def ring_sums(ring: np.ndarray, theta_ring, start: int, n: int) -> np.ndarray:
-    """Sums over ``n`` samples of the pipeline's signal ring (``(12, M)`` float32 or float64, the
+    """Sums over ``n`` samples of the pipeline's signal ring (``(11, M)`` float32 or float64, the
     rows of :func:`block_rows`; angle ``theta_ring`` ``(M,)``, rad) from column ``start``, wrapping:
     (15,) = sums of power (W), omega, i_q, i_d i_q, i_d^2 + i_q^2; minima of i_d, i_q and maxima
     (NaN when a sample is NaN); the angle's mean; sums of dth^2, dth omega, dth power, omega^2,

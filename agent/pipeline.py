@@ -65,7 +65,8 @@ _THETA_LIMIT = 2.0**20  #: rad; the buffered angle is kept below this
 LEARNING_SHIFT_T = 6.0
 LEARNING_SHIFT_MIN = 20  #: stretches from which the check is made (fewer: too little to tell)
 #: rows of the signal ring (agent.kernels.block_rows writes them): phase voltages and currents,
-#: speed, dq signals, power; stored as float32 (24-bit mantissa, above any ADC's resolution). The
+#: speed, dq signals (the input power is the phases' product, summed per hop); stored as float32
+#: (24-bit mantissa, above any ADC's resolution). The
 #: angle has a float64 ring of its own: unwrapped up to _THETA_LIMIT, float32 would resolve it to 0.06 rad.
 RING_DTYPE = np.float32
 
@@ -239,7 +240,7 @@ class DriveMonitor:
         self._next_sample = block.first_sample + block.n
         self.last_input = time.monotonic()
         self._encoder = block.theta_e is not None
-        # one C pass: the ring's rows (Clarke, Park, power), the saturation check and the angle
+        # one C pass: the ring's rows (Clarke, Park), the saturation check and the angle
         # unwrapped across blocks (Signals wants it so); kept below 2^20 rad by shifting the whole
         # buffer by whole turns, which changes no cosine and no difference
         data = np.empty((len(ROWS), block.n), dtype=self._ring.dtype)
@@ -320,7 +321,7 @@ class DriveMonitor:
         if not phases:
             return Signals(dq[:2], dq[2:], theta, r("omega_e"), 1.0 / self.rate, pole_pairs=self.profile.motor.pole_pairs)
         return Signals(dq[:2], dq[2:], theta, r("omega_e"), 1.0 / self.rate, rows[3:6], rows[0:3],
-                       self.profile.motor.pole_pairs, r("p_in"))
+                       self.profile.motor.pole_pairs)
 
     def _span_sums(self) -> HopSums:
         """The sums of the span's hops combined (the angle about the span's mean)."""

@@ -150,7 +150,7 @@ def rows_reference(i_abc, v_abc, theta, omega, cs, theta_last):
     unwrapped by np.unwrap from theta_last."""
     with np.errstate(invalid="ignore"):  # inf * 0 in the matrix product: NaN, as in C
         rows = np.vstack((v_abc, i_abc, omega, park(CLARKE[:2] @ i_abc, cs[0], cs[1]),
-                          park(CLARKE[:2] @ v_abc, cs[2], cs[3]), np.einsum("ij,ij->j", v_abc, i_abc)))
+                          park(CLARKE[:2] @ v_abc, cs[2], cs[3])))
     return rows, np.unwrap(np.concatenate(([theta_last], theta)))[1:]
 
 
@@ -164,7 +164,7 @@ def test_block_rows_at_a_given_angle_equals_numpy(dtype):
     mid = theta + 0.5 * omega / FS
     cs = np.vstack((np.cos(theta), np.sin(theta), np.cos(mid), np.sin(mid)))
     want, unwrapped = rows_reference(i_abc, v_abc, theta, omega, cs, 1000.0)
-    rows = np.full((12, n), np.nan, dtype=dtype)
+    rows = np.full((11, n), np.nan, dtype=dtype)
     got, bad, zf = block_rows(i_abc, v_abc, CLARKE[:2], [np.inf, np.inf], 1000.0, rows,
                               angle=np.vstack((theta, omega, cs)))
     assert not bad and zf is None
@@ -181,7 +181,7 @@ def test_block_rows_flags_nan_and_saturated_samples():
     i_abc, v_abc = three_phase(n, 100.0, 10.0, seed=3), three_phase(n, 100.0, 200.0, seed=4)
     angle = np.vstack((np.zeros(n), np.zeros(n), np.ones(n), np.zeros(n), np.ones(n), np.zeros(n)))
     lim = [np.abs(i_abc).max() * 1.001, np.abs(v_abc).max() * 1.001]
-    run = lambda i, v, limits=lim: block_rows(i, v, CLARKE[:2], limits, 0.0, np.empty((12, n)), angle=angle)[1]  # noqa: E731
+    run = lambda i, v, limits=lim: block_rows(i, v, CLARKE[:2], limits, 0.0, np.empty((11, n)), angle=angle)[1]  # noqa: E731
     assert not run(i_abc, v_abc)
     assert run(i_abc, v_abc, [lim[0], np.abs(v_abc).max()])  # at the limit: saturated
     assert run(i_abc, v_abc, [np.abs(i_abc).max(), lim[1]])
@@ -204,7 +204,7 @@ def test_block_rows_through_the_pll_equals_pll_run_then_numpy(with_nan):
     pll.reset(i_abc[:, :1000])
     theta, omega, zf, cs = pll_run(np.nan_to_num(i_abc), pll._clarke, pll._par, pll._state, cos_sin=True)
     want, unwrapped = rows_reference(i_abc, v_abc, theta, omega, cs, -5.0)
-    rows = np.empty((12, n))
+    rows = np.empty((11, n))
     got, bad, zf_got = block_rows(i_abc, v_abc, CLARKE[:2], [1e9, 1e9], -5.0, rows, pll=(pll._par, pll._state))
     assert bad == with_nan
     np.testing.assert_array_equal(zf_got, zf)
@@ -220,8 +220,10 @@ def test_block_rows_through_the_pll_equals_pll_run_then_numpy(with_nan):
 
 
 def sums_reference(rows, theta):
-    """The hop sums in numpy, over float64 copies (as pipeline.hop_sums took them before)."""
-    i, w, p = rows[7:9].astype(float), rows[6].astype(float), rows[11].astype(float)
+    """The hop sums in numpy, over float64 copies (as pipeline.hop_sums took them before); the
+    input power from the stored phases."""
+    i, w = rows[7:9].astype(float), rows[6].astype(float)
+    p = np.einsum("ij,ij->j", rows[0:3].astype(float), rows[3:6].astype(float))
     mean = float(np.mean(theta))
     dth = theta - mean
     return np.array([p.sum(), w.sum(), i[1].sum(), i[0] @ i[1], np.einsum("ij,ij->", i, i), *i.min(axis=1),
@@ -232,7 +234,7 @@ def sums_reference(rows, theta):
 def test_ring_sums_equal_numpy_across_the_wrap(dtype):
     rng = np.random.default_rng(9)
     m, start, n = 1000, 700, 600  # wraps after 300 samples
-    ring = (rng.standard_normal((12, m)) * 10 + 5).astype(dtype)
+    ring = (rng.standard_normal((11, m)) * 10 + 5).astype(dtype)
     theta = 3e5 + np.cumsum(rng.uniform(0.0, 0.05, m))
     take = (np.arange(n) + start) % m
     want = sums_reference(ring[:, take], theta[take])

@@ -62,6 +62,7 @@ def test_gateway_examples_pass_check_config_without_the_workbench(example):
     assert out.returncode == 0, out.stderr[-2000:]
     doc = json.loads(out.stdout)
     assert doc["ok"] and len(doc["drives"]) >= 24 and doc["memory_mb"] <= doc["memory_limit_mb"]
+    assert doc["memory_per_drive_mb"] <= 8.0  # every queue full: the worst case of a drive's share
 
 
 def test_every_real_source_has_a_gateway_example():

@@ -66,7 +66,7 @@ def transition_line(drive: str, kind: str, detail: dict) -> str:
         parts.append(f'reason="{reason}"')
     return " ".join(parts)
 
-QUEUE_BLOCKS = 32  #: per drive, ~3 s of 0.1 s blocks, held as float32 (:func:`compact`)
+QUEUE_BLOCKS = 16  #: per drive, 1.6 s of 0.1 s blocks, held as float32 (:func:`compact`)
 OPEN_WAIT_S = 10.0  #: READY waits at most this long for each source's first open
 WORKER_START_S = 30.0  #: ... plus this long for DSP workers to start (imports, library)
 
