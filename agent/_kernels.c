@@ -17,8 +17,9 @@
 #define PI 3.14159265358979323846 /* the double nearest pi, as math.pi */
 
 /* The interface's version (agent/kernels.py refuses a library built from another one). 2: the
- * PLL's state of 9 and its cos/sin output; 3: block_rows, ring_sums and ltv_residuals. */
-int kernels_abi(void) { return 3; }
+ * PLL's state of 9 and its cos/sin output; 3: block_rows, ring_sums and ltv_residuals; 4: the
+ * rows without the input power (ring_sums takes it from the phases). */
+int kernels_abi(void) { return 4; }
 
 /* cos and sin of a small angle x (|x| <= SMALL_ANGLE) by their Taylor series, short where |x| <=
  * 1/16 (to x^8 / x^9) and to x^14 / x^13 above: the first term left out is below 1e-19 there,

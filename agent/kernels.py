@@ -20,7 +20,7 @@ from numpy.ctypeslib import ndpointer
 _NAME = "_kernels"
 
 
-_ABI = 3  #: the interface of agent/_kernels.c this module calls (its kernels_abi())
+_ABI = 4  #: the interface of agent/_kernels.c this module calls (its kernels_abi())
 
 
 def _load() -> ctypes.CDLL:
