@@ -96,6 +96,15 @@ def rss_mb(pids: list[int], key: str = "VmRSS") -> float:
 
 # --- data ------------------------------------------------------------------------------------------
 
+def learning_records() -> list:
+    """The baseline's records: twelve healthy 4 s records at 80 % load."""
+    from agent.profile import load_profile
+    from agent.simulator import simulate
+
+    profile = load_profile(PROFILE)
+    return [simulate(profile, "healthy", 80.0, 4.0, seed=7000 + j) for j in range(12)]
+
+
 def prepare(tmp: Path, onset_s: float, fault_s: float, healthy_files: int) -> dict:
     """A library with one baseline, ``healthy_files`` healthy 20 s records and one record that
     is healthy for ``onset_s`` then has a severely worn gear for ``fault_s`` (no jump: same seed)."""
@@ -108,7 +117,7 @@ def prepare(tmp: Path, onset_s: float, fault_s: float, healthy_files: int) -> di
     profile = load_profile(PROFILE)
     lib = tmp / "state" / "library"
     lib.mkdir(parents=True, exist_ok=True)
-    base = identify_baseline([simulate(profile, "healthy", 80.0, 4.0, seed=7000 + j) for j in range(12)], profile)
+    base = identify_baseline(learning_records(), profile)
     save_baseline(base, lib / "b80.json")
     healthy = [str(save_record(simulate(profile, "healthy", 80.0, 20.0, seed=8000 + j), tmp / f"h{j}.npz"))
                for j in range(healthy_files)]
@@ -378,8 +387,18 @@ def chain(data: dict, seconds: float, revision: str = REFERENCE) -> dict:
     ref_pipeline, ref_library, ref_profile = (importlib.import_module(f"agent_reference.{m}")
                                               for m in ("pipeline", "library", "profile"))
     rec = load_record(data["healthy"][0])
-    monitors = {"reference": ref_pipeline.DriveMonitor("d1", ref_profile.load_profile(PROFILE),
-                                                       ref_library.ModelLibrary(data["state"] / "library")),
+    # each revision reads the drive's profile as that revision wrote it (keys were added since)
+    ref_profile_file = Path(tempfile.mkdtemp(prefix="bench-ref-profile-")) / PROFILE.name
+    ref_profile_file.write_bytes(subprocess.run(["git", "show", f"{revision}:{PROFILE.relative_to(ROOT)}"], cwd=ROOT,
+                                                capture_output=True, check=True).stdout)
+    # ... and learns its baseline with its own code from the records this one learnt from (a
+    # library format changed since: without a model the reference would skip most of its chain)
+    ref_prof = ref_profile.load_profile(ref_profile_file)
+    ref_lib = ref_profile_file.parent / "library"
+    ref_lib.mkdir()
+    ref_base = importlib.import_module("agent_reference.baseline").identify_baseline(learning_records(), ref_prof)
+    importlib.import_module("agent_reference.modelfile").save_baseline(ref_base, ref_lib / "b80.json")
+    monitors = {"reference": ref_pipeline.DriveMonitor("d1", ref_prof, ref_library.ModelLibrary(ref_lib)),
                 "this": pipeline.DriveMonitor("d1", load_profile(PROFILE), ModelLibrary(data["state"] / "library"))}
     cpu = dict.fromkeys(monitors, 0.0)
     first, played = 0, 0.0
@@ -394,8 +413,11 @@ def chain(data: dict, seconds: float, revision: str = REFERENCE) -> dict:
             played += 0.5
         first += rec.n
     rate = {name: round((played - 8.0) / c, 1) for name, c in cpu.items()}
+    states = {name: f"{m.status.state}/{m.status.quality}" for name, m in monitors.items()}
+    if not all(s.endswith("/good") for s in states.values()):  # a chain without its model does a part of the work
+        raise RuntimeError(f"chain: a monitor did not judge with its baseline ({states}); the comparison is void")
     return {"signal_s": played - 8.0, "signal_s_per_cpu_s": rate, "speedup": round(rate["this"] / rate["reference"], 2),
-            "states": {name: f"{m.status.state}/{m.status.quality}" for name, m in monitors.items()}}
+            "states": states}
 
 
 def run(drive_counts=(1, 10, 50, 100), seconds: float = 40.0, realtime_s: float = 40.0, onset_s: float = 20.0,
