@@ -62,6 +62,9 @@ class Sampling:
     #: axis) or "mtpa" (it leads q by the current angle, which grows with the load); without an
     #: encoder the workbench turns the current's frame onto the rotor's only for "mtpa"
     current_reference: str | None = None
+    #: the inverter: "pwm" (it switches the DC link: what a measured terminal voltage averages) or
+    #: "continuous" (a linear amplifier, or a simulation's averaged inverter); not stated: PWM
+    inverter: str = "pwm"
 
 
 @dataclass(frozen=True)
@@ -191,6 +194,8 @@ def parse_profile(data: dict, source: str = "<profile>") -> DriveProfile:
         parts[section] = _build(cls, table, section, source)
     if parts["sampling"].voltage_source not in ("measured", "reference"):
         raise InputError("key 'sampling.voltage_source' must be \"measured\" or \"reference\"", source=source)
+    if parts["sampling"].inverter not in ("pwm", "continuous"):
+        raise InputError("key 'sampling.inverter' must be \"pwm\" or \"continuous\"", source=source)
     if parts["sampling"].current_reference not in (None, "id0", "mtpa"):
         raise InputError("key 'sampling.current_reference' must be \"id0\" or \"mtpa\"", source=source)
     for key, (lo, hi) in VOLTAGE_PATH_RANGES.items():

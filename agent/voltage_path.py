@@ -53,6 +53,31 @@ def stated_path(profile) -> tuple[float, float] | None:
     return float(d or 0.0), float(a or 0.0)
 
 
+PULSE_CUT = 0.05  #: samples: a measured voltage's window further than this from a whole sample cuts PWM pulses
+
+
+def cuts_pulses(profile) -> float | None:
+    """The stated window lag (samples) of a measured voltage on a PWM inverter that straddles two
+    sampling intervals, more than ``PULSE_CUT`` from a whole sample; None where the window is
+    aligned, the voltage is the command or the inverter is continuous.
+
+    Such a window averages part of one interval's switching pulses and part of the next's: what it
+    takes of each depends on where the pulses sit, so on the duty cycles (for a centre-aligned
+    carrier: the whole of one pulse, the nearer interval's, while the duties keep the pulse edges
+    inside the window, and half of each where they cross it). Its effective delay thus follows the
+    operating point, between the whole samples around the stated lag; it is no delayed copy of the
+    applied voltage, and a fitted change of the path cannot be told from it. On the drive family's
+    null drives with a switched inverter and a measured voltage, the delay was claimed on 6 of 28
+    with such a window, and on 1 of 73 with a window within 0.05 of a whole sample; on one of the
+    six (drive 20165, a 0.29-sample lag) the same drive with its window at 0 or at 0.5, or with an
+    averaged inverter, claimed nothing (a centre-aligned single-update carrier: at half a sample
+    the window cuts both pulses at their centres, an exact half-sample delay; elsewhere not)."""
+    d = profile.sampling.voltage_delay_samples
+    if profile.sampling.voltage_source != "measured" or profile.sampling.inverter != "pwm" or d is None:
+        return None
+    return float(d) if abs(d - round(d)) > PULSE_CUT else None
+
+
 def window_equivalent(sig: Signals, window: float) -> Signals:
     """``sig`` with its voltage filtered by [w/8, 1 - w/4, w/8] (w = ``window``, samples): what a
     current averaged over w T_s centred on each sample makes of the model's input.

@@ -24,6 +24,7 @@ One that explains enough but misses the level says how many records like these w
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -35,6 +36,7 @@ from agent.effects import get as get_effect
 from agent.effects.voltage_delay import MOVES, REACH, move_toward
 from agent.errors import InputError
 from agent.evidence import effective_size
+from agent.voltage_path import cuts_pulses
 from agent.workbench.excitation import dynamics, no_dynamics_note, unfollowed_note
 from agent.workbench.fitting import (CONFLICT_SD, L_MAX_H, NONLINEAR, Prepared, Refit, fit_cost, heldout, moved_path,
                                      onto_rotor, pinned_keys, refit)
@@ -266,9 +268,31 @@ def params_floor(eid: str) -> str:
     return ", ".join(f"|{p.name}| < {p.negligible:g} {p.unit}" for p in get_effect(eid).params if p.negligible > 0)
 
 
+PULSE_WINDOW = "pulse window"  #: the judgement of a voltage path the records' voltage window cannot show
+
+
+def window_judged(r: Refit, profile) -> Refit:
+    """``r`` with voltage_delay judged not identifiable where the profile's measured voltage comes
+    through a window that cuts PWM pulses (:func:`agent.voltage_path.cuts_pulses`): a change of the
+    path cannot be told from the window's own duty-dependent delay."""
+    cut = cuts_pulses(profile)
+    if cut is None or "voltage_delay" not in r.identifiable:
+        return r
+    return dataclasses.replace(r, identifiable={**r.identifiable, "voltage_delay": (False, {"stage": PULSE_WINDOW,
+                                                                                              "window": cut})})
+
+
 def unidentified_note(eid: str, how: dict) -> str:
     """Why the records cannot pin effect ``eid`` down (``how``: :attr:`Refit.identifiable`'s
     judgement), and which records would."""
+    if how["stage"] == PULSE_WINDOW:
+        return (f"not identifiable from these records: their voltage is measured through a window "
+                f"{how['window']:g} samples late (sampling.voltage_delay_samples), which straddles two sampling "
+                f"intervals and cuts the PWM pulses of both, so its effective delay follows the duty cycle and a "
+                f"change of the path cannot be told from it; revealed by records whose voltage window is aligned "
+                f"with the sampling (a whole sample late), or by the drive's voltage command with its timing "
+                f"stated (sampling.voltage_source = \"reference\"); for a continuous inverter, state "
+                f"sampling.inverter = \"continuous\"")
     why = ("the one-step regression pins it to no better than +-{:.0%} of a typical size".format(how["relative_se"])
            if how["stage"] == "one-step" else
            "it does not lower the error on the fit segments" if how["stage"].startswith("no gain") else
@@ -381,11 +405,13 @@ def _better_unclaimable(rows: list[dict], first: dict | None) -> dict | None:
     records carry: a hidden dead time and the flux harmonics both put a 6 f_e line in dq, and where
     the dead time's fundamental is absorbed by the base, only the harmonic's freedom is left to
     tell them apart (a family drive: dead time fitted at 19.4 V for 19.0, 1.6x better than the
-    flux harmonics, which were claimed)."""
+    flux harmonics, which were claimed). A voltage path behind a window that cuts PWM pulses is no
+    such rival: it is unclaimable for the window (:func:`window_judged`), not for another effect."""
     if first is None or first["nrmse_after"] is None:
         return None
     better = [r for r in rows if r is not first and r["nrmse_after"] is not None and not _claimable(r)
-              and not r.get("negligible") and r["nrmse_after"] < RIVAL_RATIO * first["nrmse_after"]
+              and not r.get("negligible") and r.get("identifiability", {}).get("stage") != PULSE_WINDOW
+              and r["nrmse_after"] < RIVAL_RATIO * first["nrmse_after"]
               and (r["explained_fraction"] or 0.0) > 0.0]
     return min(better, key=lambda r: r["nrmse_after"], default=None)
 
@@ -568,10 +594,11 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
     fits = dict(zip(candidates, fits))
     wrong = implausible_base(ctrl.phys, base, baseline.profile.motor)
     own = {}  # effect -> the records its refit was fitted on, where not preps: a voltage path moved by whole samples
-    if "voltage_delay" in fits:
+    if "voltage_delay" in fits and cuts_pulses(baseline.profile) is None:
         r, moved = moved_delay(ctrl, preps, fits["voltage_delay"], base, prior)
         if moved is not preps:
             fits["voltage_delay"], own["voltage_delay"] = r, moved
+    fits = {eid: window_judged(r, baseline.profile) for eid, r in fits.items()}
     if wrong is not None and all(implausible_base(r.phys, base, baseline.profile.motor) for r in fits.values()):
         why = [wrong, "the baseline does not pin L_q either: give the nameplate (nameplate.lq_h) or records with an "
                       "encoder angle" if "Lq" not in prior else "",
@@ -711,7 +738,7 @@ def add_effects(baseline, preps: list[Prepared], effect_ids) -> tuple[object, di
         raise InputError(f"the model already has effect(s) {', '.join(dup)}")
     base, prior = drive_base(baseline), physical_prior(baseline)
     ctrl = control(model, preps, base, prior=prior)
-    r = nested(ctrl, preps, new, base, prior)
+    r = window_judged(nested(ctrl, preps, new, base, prior), baseline.profile)
     ctx = context(r, preps, baseline.profile)
     h_before, h_ctrl, h_after = heldout(model, preps), heldout(ctrl.model, preps), heldout(r.model, preps)
     figures = {"nrmse_before": _total(h_before), "nrmse_control": _total(h_ctrl), "nrmse_after": _total(h_after),

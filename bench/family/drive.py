@@ -328,7 +328,7 @@ def profile(drive: Drive, nameplate: bool = False, timing: bool = False) -> Driv
                   "rated_torque_nm": drive.rated_torque_nm, "rated_speed_rpm": drive.rated_speed_rpm,
                   "rated_voltage_v": drive.rated_voltage_v, "rated_current_a": drive.rated_current_a},
         "sampling": {"rate_hz": drive.rate_hz, "voltage_source": "reference" if drive.voltage_source == "reference"
-                     else "measured"},
+                     else "measured", "inverter": "pwm" if drive.inverter == "switched" else "continuous"},
         "transmission": {"kind": "gear", "driving_teeth": drive.driving_teeth, "driven_teeth": drive.driven_teeth},
     }
     if nameplate:

@@ -280,6 +280,10 @@ def revealable(drive: Drive, effect_id: str, loads, excitation: str | None = Non
             return False, "the measured terminal voltage already contains the dead-time loss"
         return True, "the voltage command lacks U_dt sign(i): 6k harmonics locked to the current's zero crossings"
     if effect_id == "voltage_delay":
+        lag = drive.voltage_filter_delay
+        if drive.inverter == "switched" and drive.voltage_source == "measured" and abs(lag - round(lag)) > 0.05:
+            return False, ("the measured voltage's window straddles two PWM periods and cuts their pulses: its "
+                           "effective delay follows the duty cycle, so a change of the path cannot be told from it")
         if levels >= 2 or excitation != "constant":
             return True, "the operating point changes: a delay is no longer one fixed rotation of the voltage"
         return False, "at one constant operating point a delay is one rotation omega_e d T_s of a constant voltage, absorbed by R_s, L and psi_m"
