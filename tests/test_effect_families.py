@@ -243,3 +243,25 @@ def test_a_drive_holding_dq_fits_to_its_noise_floor_once_the_hold_is_known():
     assert p["advance_samples"] == pytest.approx(0.5, abs=0.15) and p["delay_samples"] == pytest.approx(0.0, abs=0.1), p
     # the control in the speed form is already within 1.4x the floor (in the lumped form it was above 3x the refit)
     assert fig["nrmse_after"] <= floor and fig["nrmse_after"] <= 0.6 * fig["nrmse_control"], (fig, floor)
+
+
+def test_an_effects_column_cache_neither_recomputes_a_live_record_nor_keeps_a_dead_one():
+    """Effect.cols and smooth_current keep results per Signals object by identity (a fit turns
+    from record to record), with weak references: the streaming agent builds new signals every
+    hop, and a cache must not keep them alive."""
+    import gc
+    import weakref
+
+    from agent.effects.base import ByIdentity
+
+    cache, made = ByIdentity(2), []
+    sig = lambda n: Signals(np.zeros((2, n)), np.zeros((2, n)), np.zeros(n), np.zeros(n), 1e-4)  # noqa: E731
+    a, b = sig(5), sig(6)
+    assert [cache.get(x, lambda s: made.append(s.n) or s.n) for x in (a, b, a, b)] == [5, 6, 5, 6] and made == [5, 6]
+    gone = weakref.ref(a)
+    del a
+    gc.collect()
+    assert gone() is None and len(cache.items) == 1
+    c, d = sig(7), sig(8)
+    cache.get(c, lambda s: s.n), cache.get(d, lambda s: s.n)
+    assert len(cache.items) == 2 and all(ref() is x for (ref, _), x in zip(cache.items, (c, d)))  # the newest two

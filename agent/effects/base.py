@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -13,20 +14,26 @@ from agent.model import Signals, Term
 
 
 class ByIdentity:
-    """The last ``size`` results of ``make(obj)``, keyed by the object's identity (Signals are
-    arrays' holders, neither hashable nor changed after they are built)."""
+    """The last ``size`` results of ``make(obj)``, keyed by the object's identity (Signals hold
+    arrays: neither hashable nor changed once built). Only weak references to the objects are kept,
+    and a result goes with its object: a cache never keeps a record's signals alive (the streaming
+    agent builds new ones every hop)."""
 
     def __init__(self, size: int):
         self.size, self.items = size, []
 
     def get(self, obj, make):
-        for k, (o, value) in enumerate(self.items):
-            if o is obj:
+        for k, (ref, value) in enumerate(self.items):
+            if ref() is obj:
                 self.items.append(self.items.pop(k))
                 return value
         value = make(obj)
-        self.items[:] = self.items[1 - self.size:] + [(obj, value)]
+        self.items.append((weakref.ref(obj, self._drop), value))
+        del self.items[:-self.size]
         return value
+
+    def _drop(self, ref) -> None:
+        self.items[:] = [item for item in self.items if item[0] is not ref]
 
 
 @dataclass(frozen=True)
