@@ -388,14 +388,16 @@ def chain(data: dict, seconds: float, revision: str = REFERENCE) -> dict:
                                               for m in ("pipeline", "library", "profile"))
     rec = load_record(data["healthy"][0])
     # each revision reads the drive's profile as that revision wrote it (keys were added since)
-    ref_profile_file = Path(tempfile.mkdtemp(prefix="bench-ref-profile-")) / PROFILE.name
+    ref_dir = data["state"].parent / "reference"  # in the run's temporary directory
+    ref_dir.mkdir(exist_ok=True)
+    ref_profile_file = ref_dir / PROFILE.name
     ref_profile_file.write_bytes(subprocess.run(["git", "show", f"{revision}:{PROFILE.relative_to(ROOT)}"], cwd=ROOT,
                                                 capture_output=True, check=True).stdout)
     # ... and learns its baseline with its own code from the records this one learnt from (a
     # library format changed since: without a model the reference would skip most of its chain)
     ref_prof = ref_profile.load_profile(ref_profile_file)
-    ref_lib = ref_profile_file.parent / "library"
-    ref_lib.mkdir()
+    ref_lib = ref_dir / "library"
+    ref_lib.mkdir(exist_ok=True)
     ref_base = importlib.import_module("agent_reference.baseline").identify_baseline(learning_records(), ref_prof)
     importlib.import_module("agent_reference.modelfile").save_baseline(ref_base, ref_lib / "b80.json")
     monitors = {"reference": ref_pipeline.DriveMonitor("d1", ref_prof, ref_library.ModelLibrary(ref_lib)),

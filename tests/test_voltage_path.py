@@ -175,4 +175,4 @@ def test_a_delay_behind_a_window_that_cuts_pwm_pulses_is_not_claimed_and_the_ans
     delay = next(c for c in doc["candidates"] if c["effect"] == "voltage_delay")
     assert not any(c["significant"] for c in doc["candidates"])
     assert delay["identifiability"]["stage"] == "pulse window" and all(v is None for v in delay["params"].values())
-    assert f"{drive.voltage_filter_delay:g} samples late" in delay["note"] and "cuts the PWM pulses" in delay["note"]
+    assert f"lagging by {drive.voltage_filter_delay:g} samples" in delay["note"] and "cuts the PWM pulses" in delay["note"]

@@ -24,7 +24,6 @@ One that explains enough but misses the level says how many records like these w
 
 from __future__ import annotations
 
-import dataclasses
 import time
 
 import numpy as np
@@ -36,10 +35,9 @@ from agent.effects import get as get_effect
 from agent.effects.voltage_delay import MOVES, REACH, move_toward
 from agent.errors import InputError
 from agent.evidence import effective_size
-from agent.voltage_path import cuts_pulses
 from agent.workbench.excitation import dynamics, no_dynamics_note, unfollowed_note
-from agent.workbench.fitting import (CONFLICT_SD, L_MAX_H, NONLINEAR, Prepared, Refit, fit_cost, heldout, moved_path,
-                                     onto_rotor, pinned_keys, refit)
+from agent.workbench.fitting import (CONFLICT_SD, L_MAX_H, NONLINEAR, PULSE_WINDOW, Prepared, Refit, fit_cost,
+                                     heldout, moved_path, onto_rotor, pinned_keys, refit)
 
 ALPHA = 0.01  #: family-wise significance level of the test over records
 MIN_RECORDS = 3  #: records needed for the test
@@ -213,10 +211,10 @@ def moved_delay(ctrl: Refit, preps: list[Prepared], r: Refit, base: dict, prior:
     and on the drive family such moves, tried in 183 sets, were kept in 23; two were claims of the
     delay for a hidden flux harmonic and a saturation, one a true delay's. Returns the best refit
     and the records it was fitted on (``preps`` where no move helped)."""
+    if r.cost >= ctrl.cost:  # the columns explain nothing: no sign of a path off the stated one
+        return r, preps
     step = move_toward(r.values["voltage_delay"])
     best, best_preps = r, preps
-    if r.cost >= ctrl.cost:  # the columns explain nothing: no sign of a path off the stated one
-        return best, best_preps
     for direction in ([step] if step else [1, -1] if r.at_bound.get("voltage_delay") else []):
         n = 0
         while MOVES[0] <= n + direction <= MOVES[1]:
@@ -268,26 +266,12 @@ def params_floor(eid: str) -> str:
     return ", ".join(f"|{p.name}| < {p.negligible:g} {p.unit}" for p in get_effect(eid).params if p.negligible > 0)
 
 
-PULSE_WINDOW = "pulse window"  #: the judgement of a voltage path the records' voltage window cannot show
-
-
-def window_judged(r: Refit, profile) -> Refit:
-    """``r`` with voltage_delay judged not identifiable where the profile's measured voltage comes
-    through a window that cuts PWM pulses (:func:`agent.voltage_path.cuts_pulses`): a change of the
-    path cannot be told from the window's own duty-dependent delay."""
-    cut = cuts_pulses(profile)
-    if cut is None or "voltage_delay" not in r.identifiable:
-        return r
-    return dataclasses.replace(r, identifiable={**r.identifiable, "voltage_delay": (False, {"stage": PULSE_WINDOW,
-                                                                                              "window": cut})})
-
-
 def unidentified_note(eid: str, how: dict) -> str:
     """Why the records cannot pin effect ``eid`` down (``how``: :attr:`Refit.identifiable`'s
     judgement), and which records would."""
     if how["stage"] == PULSE_WINDOW:
-        return (f"not identifiable from these records: their voltage is measured through a window "
-                f"{how['window']:g} samples late (sampling.voltage_delay_samples), which straddles two sampling "
+        return (f"not identifiable from these records: their voltage is measured through a window (or filter) "
+                f"lagging by {how['window']:g} samples (sampling.voltage_delay_samples), which straddles two sampling "
                 f"intervals and cuts the PWM pulses of both, so its effective delay follows the duty cycle and a "
                 f"change of the path cannot be told from it; revealed by records whose voltage window is aligned "
                 f"with the sampling (a whole sample late), or by the drive's voltage command with its timing "
@@ -406,7 +390,7 @@ def _better_unclaimable(rows: list[dict], first: dict | None) -> dict | None:
     the dead time's fundamental is absorbed by the base, only the harmonic's freedom is left to
     tell them apart (a family drive: dead time fitted at 19.4 V for 19.0, 1.6x better than the
     flux harmonics, which were claimed). A voltage path behind a window that cuts PWM pulses is no
-    such rival: it is unclaimable for the window (:func:`window_judged`), not for another effect."""
+    such rival: it is unclaimable for the window (``PULSE_WINDOW``), not for another effect."""
     if first is None or first["nrmse_after"] is None:
         return None
     better = [r for r in rows if r is not first and r["nrmse_after"] is not None and not _claimable(r)
@@ -594,11 +578,10 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
     fits = dict(zip(candidates, fits))
     wrong = implausible_base(ctrl.phys, base, baseline.profile.motor)
     own = {}  # effect -> the records its refit was fitted on, where not preps: a voltage path moved by whole samples
-    if "voltage_delay" in fits and cuts_pulses(baseline.profile) is None:
+    if "voltage_delay" in fits and preps[0].meta.get("pulse_window") is None:
         r, moved = moved_delay(ctrl, preps, fits["voltage_delay"], base, prior)
         if moved is not preps:
             fits["voltage_delay"], own["voltage_delay"] = r, moved
-    fits = {eid: window_judged(r, baseline.profile) for eid, r in fits.items()}
     if wrong is not None and all(implausible_base(r.phys, base, baseline.profile.motor) for r in fits.values()):
         why = [wrong, "the baseline does not pin L_q either: give the nameplate (nameplate.lq_h) or records with an "
                       "encoder angle" if "Lq" not in prior else "",
@@ -738,7 +721,7 @@ def add_effects(baseline, preps: list[Prepared], effect_ids) -> tuple[object, di
         raise InputError(f"the model already has effect(s) {', '.join(dup)}")
     base, prior = drive_base(baseline), physical_prior(baseline)
     ctrl = control(model, preps, base, prior=prior)
-    r = window_judged(nested(ctrl, preps, new, base, prior), baseline.profile)
+    r = nested(ctrl, preps, new, base, prior)
     ctx = context(r, preps, baseline.profile)
     h_before, h_ctrl, h_after = heldout(model, preps), heldout(ctrl.model, preps), heldout(r.model, preps)
     figures = {"nrmse_before": _total(h_before), "nrmse_control": _total(h_ctrl), "nrmse_after": _total(h_after),

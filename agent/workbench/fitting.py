@@ -126,9 +126,9 @@ def prepare(records: list[Record], profile: DriveProfile, max_fit_s: float = 0.5
     """Records -> workbench signals: the record's encoder angle and speed, or the PLL's with the angle
     refined by :func:`follow_current`, less the PLL's lock-in; the voltage path the profile states
     applied to the voltage (:mod:`agent.voltage_path`); the hold-out split."""
-    from agent.voltage_path import corrected, stated_path
+    from agent.voltage_path import corrected, cuts_pulses, stated_path
 
-    path = stated_path(profile)
+    path, pulse_window = stated_path(profile), cuts_pulses(profile)
 
     out = []
     rate = profile.sampling.rate_hz
@@ -143,7 +143,7 @@ def prepare(records: list[Record], profile: DriveProfile, max_fit_s: float = 0.5
         length = min(int(FIT_FRACTION * sig.n), int(max_fit_s * rate))
         start = fit_start(sig, length)
         meta = {**rec.meta, **({"voltage_path": tuple(path)} if path is not None else {}),  # what was applied
-                "current_window": float(profile.sampling.current_window_samples or 0.0)}
+                "current_window": float(profile.sampling.current_window_samples or 0.0), "pulse_window": pulse_window}
         out.append(Prepared(rec.source, sig, operating_point(sig, profile), start + length, meta, start,
                             encoder=rec.theta_e is not None))
     return out
@@ -557,6 +557,10 @@ class Refit:
     info: dict = field(default_factory=dict)  #: effect id -> what :func:`pinned_keys` judges its figures by
 
 
+#: the judgement of voltage_delay on records whose measured voltage comes through a window that cuts
+#: PWM pulses (:func:`agent.voltage_path.cuts_pulses`, in each Prepared's meta): a change of the path
+#: cannot be told from the window's own duty-dependent delay
+PULSE_WINDOW = "pulse window"
 CONFLICT_SD = 3.0  #: a prior further than this many combined sd from the records' own estimate is not used
 RS_D_PRECISION = 0.3  #: R_s,d from the one-step regression (or with the nameplate) is used when known to this share
 
@@ -808,6 +812,9 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
             pinned = [p.name for p, m in zip(get_effect(eid).params, held[eid][0]) if m]
             judged[eid] = (True, {**how, "one_step_pinned": pinned})
             info[eid]["cov"] = step.cov[eid]
+    window = preps[0].meta.get("pulse_window")
+    if window is not None and "voltage_delay" in judged:  # the records' voltage cannot show a path change
+        judged["voltage_delay"] = (False, {"stage": PULSE_WINDOW, "window": window})
     return Refit(tuple(effect_ids), model, phys, values, cost, judged,
                  {e: at_bound(values[e], bounds[e], get_effect(e)) for e in values}, info)
 
