@@ -181,15 +181,19 @@ def _attr_value(drive: dict, key: str, medians: dict):
     return v
 
 
-def misses_by_attribute(rows: list[tuple[dict, dict]]) -> list[str]:
-    """The attribute values that concentrate the misses: miss rate at least twice the effect's and
-    at least 2 misses, as "attribute=value: misses/drives"."""
+def misses_by_attribute(rows: list[tuple[dict, dict]], alpha: float = 0.05) -> list[str]:
+    """The attribute values that concentrate the misses, as "attribute=value: misses/drives against
+    misses/drives elsewhere (p)": each value's misses against the other drives' by Fisher's exact
+    test (two-sided; one drive, one set: independent), kept where p < ``alpha`` and the value's
+    miss rate is the higher, most significant first; marked "(holds over all N values)" where p
+    stays below ``alpha`` / N, N the attribute values tested (Bonferroni): the others are leads, not
+    findings. Numeric attributes are split at their median."""
     if not rows:
         return []
     medians = {k: float(np.median([d[k] for d, _ in rows])) for k in ATTRIBUTES
                if all(isinstance(d.get(k), float) for d, _ in rows)}  # numeric attributes split at their median
-    rate = sum(m for _, m in rows) / len(rows)
-    out = []
+    misses, total = sum(m for _, m in rows), len(rows)
+    tested = []
     for key in ATTRIBUTES:
         groups = defaultdict(lambda: [0, 0])
         for d, miss in rows:
@@ -197,9 +201,13 @@ def misses_by_attribute(rows: list[tuple[dict, dict]]) -> list[str]:
             g[0] += miss
             g[1] += 1
         for value, (m, n) in groups.items():
-            if m >= 2 and m / n >= 2 * rate and n < len(rows):
-                out.append((m / n, f"{key}={value}: {m}/{n}"))
-    return [s for _, s in sorted(out, reverse=True)]
+            if 0 < n < total:
+                rest_m, rest_n = misses - m, total - n
+                p = float(scipy.stats.fisher_exact([[m, n - m], [rest_m, rest_n - rest_m]])[1])
+                tested.append((p, m / n > rest_m / rest_n, f"{key}={value}: {m}/{n} against {rest_m}/{rest_n}"))
+    level = alpha / max(len(tested), 1)
+    return [f"{text} (p = {p:.2g}{f', holds over all {len(tested)} values' if p < level else ''})"
+            for p, higher, text in sorted(tested) if higher and p < alpha]
 
 
 def is_miss(row: dict) -> bool:
@@ -212,9 +220,9 @@ def is_miss(row: dict) -> bool:
 
 def table(results: list, effects) -> str:
     lines = ["| effect | drives | top-1 | significant (revealable) | not revealable: said so | gain >= 2 (median) | "
-             "parameter within 20 % (median error) | other effect claimed | misses concentrate at |",
+             "parameter within 20 % (median error) | other effect claimed | misses concentrate at (Fisher) |",
              "|---|---|---|---|---|---|---|---|---|"]
-    wrong_all = []
+    wrong_all, unsure = [], []
     for eff in effects:
         rows = [(r["drive"], row) for r in results for row in r["rows"] if row["effect"] == eff]
         if not rows:
@@ -228,14 +236,21 @@ def table(results: list, effects) -> str:
         gains = [row["gain"] for _, row in rows if row["gain"] is not None]
         errs = [row["error"] for _, row in rows if row["error"] is not None]
         wrong = [(d, row) for d, row in rows if row["wrong_claims"]]
-        wrong_all += [(eff, row["wrong_claims"]) for _, row in wrong]
+        wrong_all += [(eff, row["wrong_claims"], r["seed"]) for r in results for row in r["rows"]
+                      if row["effect"] == eff and row["wrong_claims"]]
         where = misses_by_attribute([(d, is_miss(row)) for d, row in rows])
+        quiet = misses_by_attribute([(d, not row["significant"]) for d, row in rows if row["revealable"]])
+        if quiet:
+            unsure.append(f"{eff}: {'; '.join(quiet[:2])}")
         lines.append(f"| {eff} | {n} | {top / n:.0%} | {sig}/{len(rev)} = {sig / max(len(rev), 1):.0%} | "
                      f"{said}/{len(hidden)} | {np.mean(np.array(gains) >= GAIN_MIN):.0%} ({np.median(gains):.3g}x) | "
                      f"{np.mean(np.array(errs) <= ERROR_MAX):.0%} of {len(errs)} ({np.median(errs):.0%}) | "
-                     f"{len(wrong)} | {'; '.join(where[:3]) or '-'} |" if gains and errs else
+                     f"{len(wrong)} | {'; '.join(where[:2]) or '-'} |" if gains and errs else
                      f"| {eff} | {n} | {top / n:.0%} | {sig}/{len(rev)} | {said}/{len(hidden)} | - | - | {len(wrong)} | "
-                     f"{'; '.join(where[:3]) or '-'} |")
+                     f"{'; '.join(where[:2]) or '-'} |")
+    if unsure:
+        lines += ["", "Not significant where the records can reveal it, concentrated at (Fisher's exact test, "
+                  "one set per drive): " + " | ".join(unsure)]
     nulls = [r["null"] for r in results if "null" in r]
     claiming = [n["claims"] for n in nulls if n["claims"]]
     quiet = sum(bool(n["answer"]) for n in nulls)
@@ -245,8 +260,8 @@ def table(results: list, effects) -> str:
     if claiming:
         lines.append("Claims on null drives: " + ", ".join(f"{k} x{v}" for k, v in
                                                            Counter(e for c in claiming for e in c).most_common()))
-    lines.append("A different effect claimed significant: " + (", ".join(f"{w} for hidden {e}" for e, ws in wrong_all
-                                                                          for w in ws) or "never") + ".")
+    lines.append("A different effect claimed significant: " + (", ".join(f"{w} for hidden {e} ({seed})" for e, ws, seed
+                                                                          in wrong_all for w in ws) or "never") + ".")
     errors = [r for r in results if "error" in r]
     if errors:
         lines.append(f"Drives that ended in an error: {len(errors)} ({'; '.join(r['error'] for r in errors[:3])})")

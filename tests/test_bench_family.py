@@ -23,3 +23,30 @@ def test_family_short_form_claims_nothing_false(full_form):
         assert not wrong, (seed, r["drive"], wrong)
         for row in r["rows"]:
             assert row["rank"] is not None or row["answer"], (seed, row["effect"])
+
+
+def test_misses_are_grouped_by_the_attribute_that_concentrates_them():
+    """Misses that follow one attribute are named with Fisher's exact p (scipy's, against the
+    independent hypergeometric tail written here) and whether the finding survives Bonferroni over
+    every attribute value tested; misses spread evenly name nothing."""
+    import math
+
+    from bench.bench_family import ATTRIBUTES, misses_by_attribute
+
+    def drive(j, encoder):
+        d = {k: "x" for k in ATTRIBUTES}
+        d.update(encoder=encoder, inverter=("switched", "averaged")[j % 2])
+        return d
+
+    rows = [(drive(j, False), j % 7 != 0) for j in range(35)] + [(drive(j, True), j % 8 == 0) for j in range(25)]
+    found = misses_by_attribute(rows)
+    assert found and found[0].startswith("encoder=False: 30/35 against 4/25"), found
+    # two-sided Fisher p: the hypergeometric probabilities no larger than the table's, summed
+    n1, n2, m = 35, 25, 34
+    prob = [math.comb(m, k) * math.comb(n1 + n2 - m, n1 - k) / math.comb(n1 + n2, n1) for k in range(0, n1 + 1)
+            if 0 <= n1 - k <= n1 + n2 - m]
+    lo = max(0, n1 - (n1 + n2 - m))
+    p = sum(q for q in prob if q <= prob[30 - lo] * (1 + 1e-9))
+    assert f"p = {p:.2g}" in found[0] and "holds over all" in found[0]
+    even = [(drive(j, j % 2 == 0), j % 3 == 0) for j in range(60)]
+    assert misses_by_attribute(even) == []

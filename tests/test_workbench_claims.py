@@ -502,21 +502,28 @@ def test_reproduced_share_of_one_effects_contribution_by_anothers_form(base80):
     assert ex.reproduced(fifth, "voltage", "current_offset", preps) == 0.0
 
 
-def test_a_claim_whose_contribution_a_twin_reproduces_is_withheld_naming_what_separates_them(monkeypatch):
-    """A family drive (i_d = 0, one speed) with a hidden dead time: the flux harmonics' 5th and 7th
-    take its 6 f_e lines (their fitted ratio 1.9 against 49:25) and were claimed. The dead time's
-    form reproduces 59 % of their contribution (its 11th and 13th are the rest); with the twin
-    level below that the claim is withheld, and the note says what separates the two."""
+def _family_set(seed: int, effect: str):
+    """A family drive's baseline (four 80 % records) and its four records with ``effect`` hidden."""
     from bench.family import draw_drive, draw_effect, profile, simulate as family_simulate
     from agent.baseline import identify_baseline
 
-    drive = draw_drive(20016)
+    drive = draw_drive(seed)
     prof = profile(drive, timing=True)
     base = identify_baseline([family_simulate(drive, {}, 80.0, 1.0, seed=100 + j) for j in range(4)], prof,
                              window_s=0.5)
-    hidden = {"inverter_deadtime": draw_effect(drive, "inverter_deadtime", 20016)}
-    preps = prepare([family_simulate(drive, hidden, load, 1.0, seed=200 + j)
-                     for j, load in enumerate((40.0, 60.0, 90.0, 100.0))], prof)
+    hidden = {effect: draw_effect(drive, effect, seed)}
+    return drive, base, prepare([family_simulate(drive, hidden, load, 1.0, seed=200 + j)
+                                 for j, load in enumerate((40.0, 60.0, 90.0, 100.0))], prof)
+
+
+def test_a_claim_whose_contribution_a_twin_reproduces_is_withheld_naming_what_separates_them(monkeypatch):
+    """A family drive (i_d = 0, one speed) with a hidden dead time: the flux harmonics' 5th and 7th
+    take its 6 f_e lines (their fitted ratio 1.9 against 49:25) and are claimed, fitting far better
+    than the dead time's own refit (its fundamental taken by a base whose R_s these constant
+    records do not pin). The dead time's form reproduces 59 % of the harmonics' contribution (its
+    11th and 13th are the rest); with the twin level below that the claim is withheld, and the note
+    says what separates the two."""
+    _, base, preps = _family_set(20016, "inverter_deadtime")
     candidates = ["flux_harmonics", "inverter_deadtime"]
     row = next(c for c in ex.explain(base, preps, candidates=candidates)["candidates"] if c["effect"] == "flux_harmonics")
     assert row["significant"] and "twin" not in row
@@ -525,6 +532,26 @@ def test_a_claim_whose_contribution_a_twin_reproduces_is_withheld_naming_what_se
     assert not row["significant"] and row["twin"]["effect"] == "inverter_deadtime"
     assert 0.5 <= row["twin"]["reproduced"] < 0.9
     assert "cannot tell flux_harmonics from inverter_deadtime" in row["note"] and "second speed" in row["note"]
+
+
+def test_of_a_dead_time_and_the_magnets_harmonics_at_one_speed_the_one_that_fits_a_hair_better_is_not_claimed(
+        monkeypatch):
+    """A family drive (i_d = 0, a speed loop) with a hidden dead time: the flux harmonics explain
+    79.7 % of the control's error, the dead time 79.5 %, and the harmonics were claimed. At one
+    speed and one current angle the two leave the same lines, so neither is claimed unless it fits
+    the held-out records significantly better than the other; the note names the records that
+    would separate them. With that test at a level any difference passes, the harmonics are claimed."""
+    _, base, preps = _family_set(20057, "inverter_deadtime")
+    candidates = ["flux_harmonics", "inverter_deadtime"]
+    doc = ex.explain(base, preps, candidates=candidates)
+    assert not any(c["significant"] for c in doc["candidates"]), [(c["effect"], c.get("note")) for c in doc["candidates"]]
+    row = doc["candidates"][0]
+    other = ({"flux_harmonics", "inverter_deadtime"} - {row["effect"]}).pop()
+    assert row["twin"]["effect"] == other and row["twin"]["explains"] > 0.9
+    assert f"cannot tell {row['effect']} from {other}" in row["note"] and "second speed" in row["note"]
+    monkeypatch.setattr(ex, "TWIN_ALPHA", 1.01)
+    doc = ex.explain(base, preps, candidates=candidates)
+    assert [c["effect"] for c in doc["candidates"] if c["significant"]] == [row["effect"]]
 
 
 def test_flux_harmonics_and_dead_time_are_separable_only_across_speeds_or_current_angles():
@@ -546,3 +573,46 @@ def test_flux_harmonics_and_dead_time_are_separable_only_across_speeds_or_curren
     mtpa = [rec(600.0, -q * np.tan(a), q) for q, a in ((4.0, 0.02), (10.0, 0.02 + np.radians(6.0)))]
     assert ex.separable("flux_harmonics", "inverter_deadtime", mtpa)
     assert ex.separable("flux_harmonics", "current_offset", one)
+
+
+def test_a_dead_time_is_never_claimed_behind_a_measured_voltage():
+    """A family drive whose terminal voltage is measured (it holds the dead-time loss) with a hidden
+    5th harmonic of the magnet: the dead time's form took the harmonic's lines and was claimed
+    (before the harmonics' second, free fit found them). With the voltage's source known, the dead
+    time is judged unseen by such records and the note says why; told the voltage is the command,
+    the same records judge it as any other candidate."""
+    drive, base, preps = _family_set(20048, "flux_harmonics")
+    assert drive.voltage_source == "measured"
+    candidates = ["flux_harmonics", "inverter_deadtime"]
+    row = next(c for c in ex.explain(base, preps, candidates=candidates)["candidates"]
+               if c["effect"] == "inverter_deadtime")
+    assert not row["significant"] and "measured at the terminals" in row["note"], row["note"]
+    assert row["identifiability"] == {"stage": "measured voltage"}
+    for p in preps:
+        p.meta["voltage_measured"] = False
+    row = next(c for c in ex.explain(base, preps, candidates=candidates)["candidates"]
+               if c["effect"] == "inverter_deadtime")
+    assert row["identifiability"]["stage"] != "measured voltage" and "measured at the terminals" not in row["note"]
+
+
+def test_an_effect_the_one_step_misreads_is_fitted_again_by_the_free_run(monkeypatch):
+    """A family drive averaging its current over the interval, with a hidden 5th harmonic of the
+    magnet: the one-step regression's reading of the harmonics left the free run no better than
+    the control, so they were zeroed ("no gain") and a dead time was claimed for their lines.
+    Fitted again with the harmonics free, they are named, significant, the 5th within 20 %."""
+    drive, base, preps = _family_set(20050, "flux_harmonics")
+    assert drive.current_sampling == "average"
+    from bench.family import draw_effect
+
+    truth = draw_effect(drive, "flux_harmonics", 20050)
+    assert truth["orders"] == [5]
+    candidates = ["flux_harmonics", "inverter_deadtime"]
+    doc = ex.explain(base, preps, candidates=candidates)
+    assert [c["effect"] for c in doc["candidates"] if c["significant"]] == ["flux_harmonics"], doc["candidates"]
+    flux = doc["candidates"][0]
+    assert flux["params"]["psi_5_Wb"] == pytest.approx(truth["psi_wb"][0], rel=0.2)
+    real = ex.refit
+    monkeypatch.setattr(ex, "refit", lambda *a, free=(), **k: real(*a, **k))  # no second fit
+    doc = ex.explain(base, preps, candidates=candidates)
+    flux = next(c for c in doc["candidates"] if c["effect"] == "flux_harmonics")
+    assert not flux["significant"] and "does not lower the error" in flux["note"]

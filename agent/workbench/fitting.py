@@ -143,7 +143,8 @@ def prepare(records: list[Record], profile: DriveProfile, max_fit_s: float = 0.5
         length = min(int(FIT_FRACTION * sig.n), int(max_fit_s * rate))
         start = fit_start(sig, length)
         meta = {**rec.meta, **({"voltage_path": tuple(path)} if path is not None else {}),  # what was applied
-                "current_window": float(profile.sampling.current_window_samples or 0.0), "pulse_window": pulse_window}
+                "current_window": float(profile.sampling.current_window_samples or 0.0), "pulse_window": pulse_window,
+                "voltage_measured": profile.sampling.voltage_source == "measured"}
         out.append(Prepared(rec.source, sig, operating_point(sig, profile), start + length, meta, start,
                             encoder=rec.theta_e is not None))
     return out
@@ -561,6 +562,9 @@ class Refit:
 #: PWM pulses (:func:`agent.voltage_path.cuts_pulses`, in each Prepared's meta): a change of the path
 #: cannot be told from the window's own duty-dependent delay
 PULSE_WINDOW = "pulse window"
+#: the judgement of inverter_deadtime on records whose voltage is measured at the terminals: it
+#: already contains the dead-time loss, so a fitted dead time is another effect's lines
+MEASURED_VOLTAGE = "measured voltage"
 CONFLICT_SD = 3.0  #: a prior further than this many combined sd from the records' own estimate is not used
 RS_D_PRECISION = 0.3  #: R_s,d from the one-step regression (or with the nameplate) is used when known to this share
 
@@ -617,7 +621,7 @@ def d_current_varies(preps: list[Prepared]) -> bool:
 
 
 def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: dict | None = None,
-          max_nfev: int = 40, base: dict | None = None, prior: dict | None = None) -> Refit:
+          max_nfev: int = 40, base: dict | None = None, prior: dict | None = None, free: tuple = ()) -> Refit:
     """Refit of (R_s,d, R_s,q, L_d, L_q, L_qx, psi_m) and the effects' parameters on the fit segments:
     L_d, L_q, R_s,d and the within-record voltage effects by :func:`one_step`; R_s,q, L_qx, one
     psi_m per record (its magnet temperature; the model keeps their mean) and the other effects by
@@ -632,7 +636,8 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
     motor, and the agent's residual, which carries the transmission's signature as the model's
     error in the PLL frame, loses part of it (slight gear wear: 12 of 20 records flagged instead
     of 18). The time constants L_x / R_s,x stay within ``TAU_MIN_S``..``TAU_MAX_S``; the effects' parameters
-    within their physical bounds for the drive's ``base`` values (:func:`effect_bounds`)."""
+    within their physical bounds for the drive's ``base`` values (:func:`effect_bounds`). Effects in
+    ``free`` go to the free run whatever the one-step's precision."""
     ts = preps[0].sig.ts
     w_op = 2 * np.pi * fe_hz
     bounds = effect_bounds(effect_ids, base)
@@ -650,11 +655,11 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
     every = [get_effect(e) for e in effect_ids]
     # one_step sets the effects it pins down; those it cannot (smooth closed-loop data: little
     # sample-to-sample excitation) go to the free run with the rest, which judges them itself
-    precise = {e.id for e in every if e.id in step.se and _one_step_rel(step, e) <= PRECISION}
+    precise = {e.id for e in every if e.id in step.se and _one_step_rel(step, e) <= PRECISION and e.id not in free}
     # an effect of which the one-step pins some parameters only goes to the free run with those held
     # at the one-step's values (the voltage path's delay read sample to sample, its advance not)
     held = {e.id: (step.se[e.id] / typical_sizes([e])[e.id] <= PRECISION, step.values[e.id])
-            for e in every if e.id in step.se and e.id not in precise}
+            for e in every if e.id in step.se and e.id not in precise and e.id not in free}
     held = {k: v for k, v in held.items() if v[0].any()}
     step.values = {k: v for k, v in step.values.items() if k in precise}
     solved = [e for e in every if e.id not in step.values]
@@ -815,6 +820,8 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
     window = preps[0].meta.get("pulse_window")
     if window is not None and "voltage_delay" in judged:  # the records' voltage cannot show a path change
         judged["voltage_delay"] = (False, {"stage": PULSE_WINDOW, "window": window})
+    if preps[0].meta.get("voltage_measured") and "inverter_deadtime" in judged:  # nothing of it left to see
+        judged["inverter_deadtime"] = (False, {"stage": MEASURED_VOLTAGE})
     return Refit(tuple(effect_ids), model, phys, values, cost, judged,
                  {e: at_bound(values[e], bounds[e], get_effect(e)) for e in values}, info)
 
