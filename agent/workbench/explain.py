@@ -489,11 +489,10 @@ def _twin(first: dict | None, rows: list[dict], fits: dict, preps: list[Prepared
     contribution (:func:`reproduced`, basis "reproduced"), or its physical twin (``SEPARATES``) on
     records that cannot separate the two (:func:`separable`) that ``first`` does not beat on the
     held-out records (:func:`block_p` of ``first`` against the twin's refit at ``TWIN_ALPHA``; basis
-    "explains", the twin's share of the error as a fraction of ``first``'s). At one speed and one
-    current angle a dead time and the magnet's harmonics leave the same lines, and the one that fits
-    a hair better is chance. Claiming ``first`` would name one of two effects by chance. ``own``:
-    effect -> the records its refit was fitted on, where not ``preps``; ``held``: effect -> its
-    refit's held-out errors (:func:`heldout`)."""
+    "explains", the twin's share of the error as a fraction of ``first``'s): at one speed and one
+    current angle a dead time and the magnet's harmonics leave the same lines, and which of the two
+    fits a hair better is chance. ``own``: effect -> the records its refit was fitted on, where not
+    ``preps``; ``held``: effect -> its refit's held-out errors (:func:`heldout`)."""
     if first is None:
         return None
     eid = first["effect"]
@@ -503,12 +502,13 @@ def _twin(first: dict | None, rows: list[dict], fits: dict, preps: list[Prepared
                key=lambda t: t[1], default=None)
     if best is not None and best[1] >= TWIN_SHARE:
         return best[0], best[1], "reproduced"
-    own_share = max(first["explained_fraction"] or 0.0, 1e-12)
     pair = next((r for r in rows if r is not first and not r["at_bound"] and (r["explained_fraction"] or 0.0) > 0.0
                  and r.get("identifiability", {}).get("stage") not in UNSEEN
                  and not separable(eid, r["effect"], own.get(eid, preps))
                  and block_p(held[r["effect"]], held[eid]) >= TWIN_ALPHA), None)
-    return None if pair is None else (pair, min(max(pair["explained_fraction"] or 0.0, 0.0) / own_share, 1.0), "explains")
+    if pair is None:
+        return None
+    return pair, min(pair["explained_fraction"] / max(first["explained_fraction"] or 0.0, 1e-12), 1.0), "explains"
 
 
 def twin_note(first: str, other: str, share: float, basis: str = "reproduced") -> str:
