@@ -224,7 +224,7 @@ def table(results: list, effects) -> str:
              "|---|---|---|---|---|---|---|---|---|"]
     wrong_all, unsure = [], []
     for eff in effects:
-        rows = [(r["drive"], row) for r in results for row in r["rows"] if row["effect"] == eff]
+        rows = [({**r["drive"], "seed": r["seed"]}, row) for r in results for row in r["rows"] if row["effect"] == eff]
         if not rows:
             continue
         n = len(rows)
@@ -236,8 +236,7 @@ def table(results: list, effects) -> str:
         gains = [row["gain"] for _, row in rows if row["gain"] is not None]
         errs = [row["error"] for _, row in rows if row["error"] is not None]
         wrong = [(d, row) for d, row in rows if row["wrong_claims"]]
-        wrong_all += [(eff, row["wrong_claims"], r["seed"]) for r in results for row in r["rows"]
-                      if row["effect"] == eff and row["wrong_claims"]]
+        wrong_all += [(eff, row["wrong_claims"], d["seed"]) for d, row in wrong]
         where = misses_by_attribute([(d, is_miss(row)) for d, row in rows])
         quiet = misses_by_attribute([(d, not row["significant"]) for d, row in rows if row["revealable"]])
         if quiet:

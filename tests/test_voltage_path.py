@@ -174,5 +174,5 @@ def test_a_delay_behind_a_window_that_cuts_pwm_pulses_is_not_claimed_and_the_ans
                                  for j, load in enumerate((40.0, 60.0, 90.0, 100.0))], prof))
     delay = next(c for c in doc["candidates"] if c["effect"] == "voltage_delay")
     assert not any(c["significant"] for c in doc["candidates"])
-    assert delay["identifiability"]["stage"] == "pulse window" and all(v is None for v in delay["params"].values())
+    assert delay["identifiability"]["stage"] == "unseen" and all(v is None for v in delay["params"].values())
     assert f"lagging by {drive.voltage_filter_delay:g} samples" in delay["note"] and "cuts the PWM pulses" in delay["note"]

@@ -587,12 +587,12 @@ def test_a_dead_time_is_never_claimed_behind_a_measured_voltage():
     row = next(c for c in ex.explain(base, preps, candidates=candidates)["candidates"]
                if c["effect"] == "inverter_deadtime")
     assert not row["significant"] and "measured at the terminals" in row["note"], row["note"]
-    assert row["identifiability"] == {"stage": "measured voltage"}
+    assert row["identifiability"]["stage"] == "unseen"
     for p in preps:
-        p.meta["voltage_measured"] = False
+        p.meta["voltage_source"] = "reference"
     row = next(c for c in ex.explain(base, preps, candidates=candidates)["candidates"]
                if c["effect"] == "inverter_deadtime")
-    assert row["identifiability"]["stage"] != "measured voltage" and "measured at the terminals" not in row["note"]
+    assert row["identifiability"]["stage"] != "unseen" and "measured at the terminals" not in row["note"]
 
 
 def test_an_effect_the_one_step_misreads_is_fitted_again_by_the_free_run(monkeypatch):

@@ -96,6 +96,9 @@ class Effect:
     raw: bool = False  #: its columns carry the measured samples' white noise (not only the smoothed current)
     turns_voltage: bool = False  #: a column turns the voltage (the one-step regression then uses zoh2 columns)
     at_bound: str = ""  #: what a fit on a bound means for this effect, where it is not "beyond physics"
+    #: why records prepared with this meta (:attr:`agent.workbench.fitting.Prepared.meta`) cannot show
+    #: the effect at all, their measurement being what it is (and which records would), or None
+    unseen: Callable[[dict], str | None] = lambda meta: None
     _cache: ByIdentity = field(default_factory=lambda: ByIdentity(8), compare=False, repr=False)
 
     def __post_init__(self):

@@ -36,6 +36,20 @@ def report(v, ctx):
     return {"U_dt_V": float(v[0]), "knee_A": float(np.mean([ripple(s) for s in ctx["signals"]]))}
 
 
+REVEALS = ("records whose voltage is the drive's command (sampling.voltage_source = \"reference\"): a measured "
+           "terminal voltage already contains the dead time; at two or more loads (the dead-time voltage stays while "
+           "R_s i grows)")
+
+
+def behind_measured_voltage(meta: dict) -> str | None:
+    """Why records whose voltage is measured at the terminals cannot show a dead time (the
+    terminal voltage holds its loss: what a dead time fits there is another effect's), or None."""
+    if meta.get("voltage_source") != "measured":
+        return None
+    return ("their voltage is measured at the terminals (sampling.voltage_source = \"measured\"), so what a dead "
+            f"time would fit here is another effect's; revealed by {REVEALS}")
+
+
 EFFECT = Effect(
     id="inverter_deadtime",
     physics="Dead time and switch drop make each phase voltage U_dt (V) short in the direction of its "
@@ -48,7 +62,6 @@ EFFECT = Effect(
     signature="6k fe ripple in dq (5th, 7th, 11th, 13th in abc) locked to the current zero crossings; "
               "a DC part against the current vector that looks like extra resistance at one load",
     dq_orders=(6, 12), abc_orders=(5, 7, 11, 13),
-    reveals="records whose voltage is the drive's command (sampling.voltage_source = \"reference\"): "
-            "a measured terminal voltage already contains the dead time; at two or more loads (the dead-time "
-            "voltage stays while R_s i grows)",
+    reveals=REVEALS,
+    unseen=behind_measured_voltage,
 )

@@ -65,6 +65,21 @@ def report(v, ctx):
             "delay_us": delay * ctx["ts"] * 1e6}
 
 
+def behind_pulse_window(meta: dict) -> str | None:
+    """Why records whose measured voltage comes through a window that cuts PWM pulses cannot show
+    a change of the path (:func:`agent.voltage_path.cuts_pulses`: the window's effective delay
+    follows the duty cycle), or None."""
+    window = meta.get("pulse_window")
+    if window is None:
+        return None
+    return (f"their voltage is measured through a window (or filter) lagging by {window:g} samples "
+            f"(sampling.voltage_delay_samples), which straddles two sampling intervals and cuts the PWM pulses of "
+            f"both, so its effective delay follows the duty cycle and a change of the path cannot be told from it; "
+            f"revealed by records whose voltage window is aligned with the sampling (a whole sample late), or by "
+            f"the drive's voltage command with its timing stated (sampling.voltage_source = \"reference\"); for a "
+            f"continuous inverter, state sampling.inverter = \"continuous\"")
+
+
 EFFECT = Effect(
     id="voltage_delay",
     physics="The reported voltage is the applied one delayed by d samples, v_rep(k) = v_app(k - d), d signed "
@@ -86,7 +101,7 @@ EFFECT = Effect(
             "sample to sample and tells it from the hold); with a smooth voltage at one constant speed only "
             "the rotation omega_e (d + a) T_s is seen, partly absorbed into the lumped parameters: speed or "
             "load steps of 10 % or more reveal it then",
-    raw=True, turns_voltage=True,
+    raw=True, turns_voltage=True, unseen=behind_pulse_window,
     at_bound="at the columns' reach: the fit wants the voltage path further from the stated one than its columns "
              "follow (they interpolate within one sample of the stated path or of that path moved by whole samples, "
              "-1 to +2, and turn by one omega_e T_s at most); the path may be "

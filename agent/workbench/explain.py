@@ -36,8 +36,8 @@ from agent.effects.voltage_delay import MOVES, REACH, move_toward
 from agent.errors import InputError
 from agent.evidence import effective_size
 from agent.workbench.excitation import dynamics, no_dynamics_note, unfollowed_note
-from agent.workbench.fitting import (CONFLICT_SD, L_MAX_H, MEASURED_VOLTAGE, NONLINEAR, PULSE_WINDOW, Prepared, Refit,
-                                     fit_cost, heldout, moved_path, onto_rotor, pinned_keys, refit)
+from agent.workbench.fitting import (CONFLICT_SD, L_MAX_H, NONLINEAR, UNSEEN, Prepared, Refit, fit_cost, heldout,
+                                     moved_path, onto_rotor, pinned_keys, refit)
 
 ALPHA = 0.01  #: family-wise significance level of the test over records
 MIN_RECORDS = 3  #: records needed for the test
@@ -280,18 +280,8 @@ def params_floor(eid: str) -> str:
 def unidentified_note(eid: str, how: dict) -> str:
     """Why the records cannot pin effect ``eid`` down (``how``: :attr:`Refit.identifiable`'s
     judgement), and which records would."""
-    if how["stage"] == PULSE_WINDOW:
-        return (f"not identifiable from these records: their voltage is measured through a window (or filter) "
-                f"lagging by {how['window']:g} samples (sampling.voltage_delay_samples), which straddles two sampling "
-                f"intervals and cuts the PWM pulses of both, so its effective delay follows the duty cycle and a "
-                f"change of the path cannot be told from it; revealed by records whose voltage window is aligned "
-                f"with the sampling (a whole sample late), or by the drive's voltage command with its timing "
-                f"stated (sampling.voltage_source = \"reference\"); for a continuous inverter, state "
-                f"sampling.inverter = \"continuous\"")
-    if how["stage"] == MEASURED_VOLTAGE:
-        return ("not identifiable from these records: their voltage is measured at the terminals "
-                "(sampling.voltage_source = \"measured\"), so what a dead time would fit here is another effect's; "
-                f"revealed by {get_effect(eid).reveals}")
+    if how["stage"] == UNSEEN:
+        return f"not identifiable from these records: {how['why']}"
     why = ("the one-step regression pins it to no better than +-{:.0%} of a typical size".format(how["relative_se"])
            if how["stage"] == "one-step" else
            "it does not lower the error on the fit segments" if how["stage"].startswith("no gain") else
@@ -394,7 +384,6 @@ def _dq(h: dict) -> dict | None:
     return None if h["nrmse"] is None else {"d": h["nrmse"]["d"], "q": h["nrmse"]["q"]}
 
 
-UNSEEN = (PULSE_WINDOW, MEASURED_VOLTAGE)  #: judgements of an effect the records' measurement cannot show
 RIVAL_RATIO = 0.8  #: a claim is withheld where an unclaimable candidate's held-out NRMSE is below this share of its own
 
 
@@ -405,13 +394,12 @@ def _better_unclaimable(rows: list[dict], first: dict | None) -> dict | None:
     records carry: a hidden dead time and the flux harmonics both put a 6 f_e line in dq, and where
     the dead time's fundamental is absorbed by the base, only the harmonic's freedom is left to
     tell them apart (a family drive: dead time fitted at 19.4 V for 19.0, 1.6x better than the
-    flux harmonics, which were claimed). An effect the records' measurement cannot show (``UNSEEN``:
-    a voltage path behind a window that cuts PWM pulses, a dead time behind a measured voltage) is no
-    such rival: it is unclaimable for the measurement, not for another effect."""
+    flux harmonics, which were claimed). An effect the records' measurement cannot show (``UNSEEN``)
+    is no such rival: it is unclaimable for the measurement, not for another effect."""
     if first is None or first["nrmse_after"] is None:
         return None
     better = [r for r in rows if r is not first and r["nrmse_after"] is not None and not _claimable(r)
-              and not r.get("negligible") and r.get("identifiability", {}).get("stage") not in UNSEEN
+              and not r.get("negligible") and r.get("identifiability", {}).get("stage") != UNSEEN
               and r["nrmse_after"] < RIVAL_RATIO * first["nrmse_after"]
               and (r["explained_fraction"] or 0.0) > 0.0]
     return min(better, key=lambda r: r["nrmse_after"], default=None)
@@ -503,12 +491,12 @@ def _twin(first: dict | None, rows: list[dict], fits: dict, preps: list[Prepared
     if best is not None and best[1] >= TWIN_SHARE:
         return best[0], best[1], "reproduced"
     pair = next((r for r in rows if r is not first and not r["at_bound"] and (r["explained_fraction"] or 0.0) > 0.0
-                 and r.get("identifiability", {}).get("stage") not in UNSEEN
+                 and r.get("identifiability", {}).get("stage") != UNSEEN
                  and not separable(eid, r["effect"], own.get(eid, preps))
                  and block_p(held[r["effect"]], held[eid]) >= TWIN_ALPHA), None)
     if pair is None:
         return None
-    return pair, min(pair["explained_fraction"] / max(first["explained_fraction"] or 0.0, 1e-12), 1.0), "explains"
+    return pair, pair["explained_fraction"] / max(first["explained_fraction"] or 0.0, 1e-12), "explains"
 
 
 def twin_note(first: str, other: str, share: float, basis: str = "reproduced") -> str:
@@ -611,7 +599,7 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
     fits = dict(zip(candidates, fits))
     wrong = implausible_base(ctrl.phys, base, baseline.profile.motor)
     own = {}  # effect -> the records its refit was fitted on, where not preps: a voltage path moved by whole samples
-    if "voltage_delay" in fits and preps[0].meta.get("pulse_window") is None:
+    if "voltage_delay" in fits and fits["voltage_delay"].identifiable["voltage_delay"][1]["stage"] != UNSEEN:
         r, moved = moved_delay(ctrl, preps, fits["voltage_delay"], base, prior)
         if moved is not preps:
             fits["voltage_delay"], own["voltage_delay"] = r, moved

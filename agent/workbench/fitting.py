@@ -144,7 +144,7 @@ def prepare(records: list[Record], profile: DriveProfile, max_fit_s: float = 0.5
         start = fit_start(sig, length)
         meta = {**rec.meta, **({"voltage_path": tuple(path)} if path is not None else {}),  # what was applied
                 "current_window": float(profile.sampling.current_window_samples or 0.0), "pulse_window": pulse_window,
-                "voltage_measured": profile.sampling.voltage_source == "measured"}
+                "voltage_source": profile.sampling.voltage_source}
         out.append(Prepared(rec.source, sig, operating_point(sig, profile), start + length, meta, start,
                             encoder=rec.theta_e is not None))
     return out
@@ -558,13 +558,9 @@ class Refit:
     info: dict = field(default_factory=dict)  #: effect id -> what :func:`pinned_keys` judges its figures by
 
 
-#: the judgement of voltage_delay on records whose measured voltage comes through a window that cuts
-#: PWM pulses (:func:`agent.voltage_path.cuts_pulses`, in each Prepared's meta): a change of the path
-#: cannot be told from the window's own duty-dependent delay
-PULSE_WINDOW = "pulse window"
-#: the judgement of inverter_deadtime on records whose voltage is measured at the terminals: it
-#: already contains the dead-time loss, so a fitted dead time is another effect's lines
-MEASURED_VOLTAGE = "measured voltage"
+#: the judgement of an effect the records' measurement cannot show at all (:attr:`Effect.unseen`: a
+#: voltage path behind a window that cuts PWM pulses, a dead time behind a measured voltage)
+UNSEEN = "unseen"
 CONFLICT_SD = 3.0  #: a prior further than this many combined sd from the records' own estimate is not used
 RS_D_PRECISION = 0.3  #: R_s,d from the one-step regression (or with the nameplate) is used when known to this share
 
@@ -817,11 +813,10 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
             pinned = [p.name for p, m in zip(get_effect(eid).params, held[eid][0]) if m]
             judged[eid] = (True, {**how, "one_step_pinned": pinned})
             info[eid]["cov"] = step.cov[eid]
-    window = preps[0].meta.get("pulse_window")
-    if window is not None and "voltage_delay" in judged:  # the records' voltage cannot show a path change
-        judged["voltage_delay"] = (False, {"stage": PULSE_WINDOW, "window": window})
-    if preps[0].meta.get("voltage_measured") and "inverter_deadtime" in judged:  # nothing of it left to see
-        judged["inverter_deadtime"] = (False, {"stage": MEASURED_VOLTAGE})
+    for eid in judged:
+        why = get_effect(eid).unseen(preps[0].meta)
+        if why is not None:
+            judged[eid] = (False, {"stage": UNSEEN, "why": why})
     return Refit(tuple(effect_ids), model, phys, values, cost, judged,
                  {e: at_bound(values[e], bounds[e], get_effect(e)) for e in values}, info)
 
