@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.signal import periodogram
 
-from agent.spectrum import WINDOWS, _window, amplitude_spectrum, envelope, peak_near
+from agent.spectrum import SPLIT, WINDOWS, _window, amplitude_spectrum, envelope, peak_near
 
 SCIPY_NAMES = {"hann": "hann", "flattop": "flattop", "rect": "boxcar"}
 
@@ -51,6 +51,18 @@ def test_rows_are_vectorised():
     assert a.shape == (4, 257)
     for row, xr in zip(a, x):
         np.testing.assert_allclose(row, amplitude_spectrum(xr, 1000.0)[1], rtol=1e-12)
+
+
+@pytest.mark.parametrize("bins", [1, 2, 6251, 6252])
+def test_low_bins_equal_the_whole_transform(bins):
+    """With few ``bins`` (a multiple of SPLIT samples, at most n / (2 SPLIT) + 1 bins) the bins
+    come from the interleaved subsequences' transforms: the whole transform's to rounding."""
+    x = np.random.default_rng(3).normal(size=(2, 50_000))
+    assert (bins <= 50_000 // (2 * SPLIT) + 1) == (bins < 6252)  # 6252: the whole transform's path
+    f, a = amplitude_spectrum(x, FS, bins=bins)
+    f_all, a_all = amplitude_spectrum(x, FS)
+    np.testing.assert_array_equal(f, f_all[:bins])
+    np.testing.assert_allclose(a, a_all[:, :bins], rtol=0, atol=1e-14 * a_all.max())
 
 
 def test_scalloping_between_bins():
