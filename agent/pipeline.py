@@ -132,6 +132,17 @@ class _OpenWindows:
         self.done: dict[int, np.ndarray] = {}
 
 
+def _gram(x: np.ndarray) -> np.ndarray:
+    """x x^T of a few long rows ``x`` (m, N), by their dot products (BLAS's matrix product is
+    about twice as slow at this shape)."""
+    m = len(x)
+    g = np.empty((m, m))
+    for i in range(m):
+        for j in range(i, m):
+            g[i, j] = g[j, i] = x[i] @ x[j]
+    return g
+
+
 def _per_sample(model) -> bool:
     """True when the model's free run is a per-sample recursion of per-sample inputs, so that a
     window's simulation can be split at hop boundaries (Euler, no effect terms)."""
@@ -495,7 +506,7 @@ class DriveMonitor:
                 n = self.n_hop + int(back + self.n_hop + 1 <= self._filled)  # the sample before, if still held
                 part = self._signals(n, back, phases=bool(m.extra_q))
                 x = np.array([t.column(part) for t in terms])[:, :-1]  # regressors(), transposed: rows
-                self._q_info[end] = (name, x @ x.T, x @ part.i_dq[1, 1:])
+                self._q_info[end] = (name, _gram(x), x @ part.i_dq[1, 1:])
         for old in [k for k in self._q_info if k not in ends]:
             del self._q_info[old]
         info = sum(self._q_info[e][1] for e in ends) + np.eye(len(terms)) * 1e-6
