@@ -419,3 +419,12 @@ def test_load_of_a_salient_mtpa_drive_counts_its_reluctance_torque():
     reluctance = 100 * 1.5 * d.pole_pairs * (d.ld_h - d.lq_h) * np.mean(det["i_d"] * det["i_q"]) / d.rated_torque_nm
     assert reluctance > 2.0
     assert operating_point(record_signals(rec, magnet), magnet)["load_pct"] == pytest.approx(load - reluctance, abs=0.5)
+
+
+
+def test_an_event_a_rounding_apart_from_the_next_is_integrated_not_divided_by_zero():
+    """Drive 20432 (a record clock asynchronous to its carrier): at 90 % load two event times fell
+    a rounding apart, the integrator's step count came out 0 and the family run ended that drive in
+    a ZeroDivisionError. Such a span is one RK4 step."""
+    rec = simulate(draw_drive(20432), {}, 90.0, 1.0, seed=202)
+    assert np.all(np.isfinite(rec.i_abc)) and np.all(np.isfinite(rec.v_abc))

@@ -107,7 +107,7 @@ def _integrate(y, t0, t1, h_max, par, fm, hs, hm, ha, hp, r_s, t_load, switch, v
     span = t1 - t0
     if span <= 0.0:
         return
-    n = int(math.ceil(span / h_max - 1e-9))
+    n = max(int(math.ceil(span / h_max - 1e-9)), 1)  # a span below 1e-9 h_max (event times a rounding apart): one step
     h = span / n
     k1, k2, k3, k4, tmp = work[0], work[1], work[2], work[3], work[4]
     t = t0
