@@ -1042,10 +1042,15 @@ def onto_rotor(preps: list[Prepared], lq: float, rs: float = 0.0) -> list[Prepar
     machine's inductances mix. ``lq`` H and ``rs`` ohm from the baseline (R_s i is along the
     current, so an R_s error barely moves the angle; L_q's does: 10 % of omega_e L_q i).
 
-    Under i_d = 0 the current's frame is the rotor's exactly, and the turn only adds the active
-    flux's error (0.4-0.8 degrees with R_s unknown, which moved a family drive's null error from 0.3
-    to 14 times its noise floor): the records are turned only where their mean angle exceeds
-    ``FRAME_MIN_RAD``, a current angle that only MTPA on a salient machine gives."""
+    Only a drive under MTPA has its records turned (explain asks its profile): under i_d = 0 the
+    current's frame is the rotor's exactly, and a turn would only add the active flux's error
+    (0.4-0.8 degrees with R_s unknown, which moved a family drive's null error from 0.3 to 14 times
+    its noise floor). Under MTPA every record is turned, however small its angle: a nearly round
+    machine's (saliency 1.02-1.1) is 0.5-2 degrees and moves through a step, and left in the
+    current's frame it put omega_e psi_m delta on d, which the voltage path's rotation took (three
+    of 600 family null drives claimed a delay so; turned, each fits below its noise floor and
+    claims nothing). The turn's own error, a constant per record at such an angle, is what the
+    turned frame's psi_q takes (:attr:`Prepared.turned`)."""
     turned = []
     for p in preps:
         if p.encoder:
@@ -1062,8 +1067,7 @@ def onto_rotor(preps: list[Prepared], lq: float, rs: float = 0.0) -> list[Prepar
         omega = s.omega_e - np.gradient(shaft_lowpass(delta - np.mean(delta), s)) / s.ts  # as follow_current's
         sig = Signals.from_abc(s.v_abc, s.i_abc, s.theta_e - delta, omega, s.ts, s.pole_pairs)
         turned.append(replace(p, sig=sig, meta={**p.meta, "frame_turned_rad": float(np.mean(delta))}))
-    angles = [abs(p.meta["frame_turned_rad"]) for p in turned if p.turned]
-    return turned if angles and np.mean(angles) > FRAME_MIN_RAD else preps
+    return turned
 
 
 def moved_path(preps: list[Prepared], samples: int) -> list[Prepared]:
@@ -1082,7 +1086,6 @@ def moved_path(preps: list[Prepared], samples: int) -> list[Prepared]:
 
 
 FRAME_MAX = 0.7  #: a current frame's psi_q at most this share of psi_m's upper bound (45 degrees)
-FRAME_MIN_RAD = np.radians(2.0)  #: a current frame is turned onto the rotor's beyond this mean angle (:func:`onto_rotor`)
 
 
 IMPULSE_TAUS, IMPULSE_S = 8.0, 0.25  #: a model's impulse response is summed over 8 time constants, at most 0.25 s
