@@ -42,7 +42,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from agent.baseline import SEARCH_BINS, BaselineBuilder, TrainingRecord, residual_spectra
-from agent.decision import STATES, decide
+from agent.decision import STATES, listed_peaks
 from agent.evidence import FULL_EVIDENCE_STRETCHES, AlarmConfig, AlarmLogic, feature_values, learning_shift
 from agent.frames import CLARKE, cos_sin32
 from agent.identify import cluster_point, operating_point_of_means, solve_torque
@@ -466,11 +466,11 @@ class DriveMonitor:
         y = feature_values(freqs, spectra, self.profile, op["fe_hz"], base.evidence.features, SEARCH_BINS)
         v = self.alarms.step(base.evidence, self.profile, y[-1], point, op["input_power_pct"], op["fe_hz"],
                              self.config.hop_s)
-        d = decide(base, freqs, spectra, point, op, self.drive)  # the paper's rule: peaks for display
         self._reading = (name, TrainingRecord(f"{self.drive} (live)", op, None, spectra, point))
         return self._set(quality="good", model=name, state=self._hold(v.state), spectrum_state=v.spectrum_state,
                          cluster_state=v.cluster_state, fe_hz=op["fe_hz"], load_pct=op["load_pct"],
-                         peaks=d.peaks, cluster_distance2=d.cluster["distance2"], reason=v.reason,
+                         peaks=listed_peaks(base, freqs, spectra, op["fe_hz"]),  # the paper's rule, for display
+                         cluster_distance2=base.cluster.distance2(point), reason=v.reason,
                          evidence=v.evidence, settling=v.settling)
 
     def _span_ends(self):
