@@ -253,31 +253,42 @@ class DriveMonitor:
         self._encoder = block.theta_e is not None
         # one C pass: the ring's rows (Clarke, Park), the saturation check and the angle
         # unwrapped across blocks (Signals wants it so); kept below 2^20 rad by shifting the whole
-        # buffer by whole turns, which changes no cosine and no difference
-        data = np.empty((len(ROWS), block.n), dtype=self._ring.dtype)
+        # buffer by whole turns, which changes no cosine and no difference. A block that neither
+        # completes a hop before its end nor wraps the ring is written straight into the ring; else
+        # it is pushed hop by hop (a hop is assessed before the next overwrites the span's oldest).
+        w = self._write
+        direct = block.n <= min(self.n_hop - self._since_hop, self.n_span - w)
+        if direct:
+            data, theta = self._ring[:, w:w + block.n], self._theta[w:w + block.n]
+        else:
+            data, theta = np.empty((len(ROWS), block.n), dtype=self._ring.dtype), np.empty(block.n)
         if block.theta_e is not None:
-            theta = block.theta_e
-            omega = block.omega_e if block.omega_e is not None else np.gradient(np.unwrap(theta)) * self.rate
-            angle = np.concatenate(([theta], [omega], cos_sin32(theta), cos_sin32(theta + 0.5 * omega / self.rate)))
-            theta, bad, _ = block_rows(block.i_abc, block.v_abc, CLARKE[:2], self._limits, self._theta_last, data,
-                                       angle=angle)
+            angle = block.theta_e
+            omega = block.omega_e if block.omega_e is not None else np.gradient(np.unwrap(angle)) * self.rate
+            angle = np.concatenate(([angle], [omega], cos_sin32(angle), cos_sin32(angle + 0.5 * omega / self.rate)))
+            _, bad, _ = block_rows(block.i_abc, block.v_abc, CLARKE[:2], self._limits, self._theta_last, data,
+                                   angle=angle, unwrapped=theta)
         else:
             if self._samples == 0:  # a new stream: the PLL starts where it starts, as offline (record_signals)
                 self.pll.reset(block.i_abc)
             # the PLL's loop writes the rows (its angle's cos and sin and the voltages' mid angle's at hand)
-            theta, bad = self.pll.process_rows(block.i_abc, block.v_abc, self._limits, self._theta_last, data)
+            _, bad = self.pll.process_rows(block.i_abc, block.v_abc, self._limits, self._theta_last, data, theta)
         if bad:
             self._bad_until = self._samples + block.n + self.n_span  # spans containing this block are bad
         if theta[-1] > _THETA_LIMIT:
             turns = 2 * np.pi * np.floor(theta[0] / (2 * np.pi))
-            theta = theta - turns
-            self._theta -= turns
+            self._theta -= turns  # with the block when it is written there
+            if not direct:
+                theta -= turns
             self._hop_sums = {k: replace(h, theta_mean=h.theta_mean - turns) for k, h in self._hop_sums.items()}
         self._theta_last = theta[-1]
         out, pos = [], 0
         while pos < block.n:
             take = min(block.n - pos, self.n_hop - self._since_hop)
-            self._push(data[:, pos:pos + take], theta[pos:pos + take])
+            if direct:
+                self._advance(take)
+            else:
+                self._push(data[:, pos:pos + take], theta[pos:pos + take])
             pos += take
             self._since_hop += take
             if self._since_hop == self.n_hop:
@@ -298,6 +309,10 @@ class DriveMonitor:
         self._theta[self._write:self._write + first] = theta[:first]
         self._ring[:, :n - first] = chunk[:, first:]
         self._theta[:n - first] = theta[first:]
+        self._advance(n)
+
+    def _advance(self, n: int) -> None:
+        """Count ``n`` samples written into the ring at its write position."""
         self._write = (self._write + n) % self.n_span
         self._filled = min(self.n_span, self._filled + n)
         self._samples += n
