@@ -5,5 +5,5 @@ Everything else about the package is in pyproject.toml."""
 
 from setuptools import Extension, setup
 
-setup(ext_modules=[Extension("agent._kernels", ["agent/_kernels.c"], extra_compile_args=["-O3", "-ffp-contract=off"],
+setup(ext_modules=[Extension("agent._kernels", ["agent/_kernels.c"], extra_compile_args=["-O2", "-ffp-contract=off"],
                              libraries=["m"])])

@@ -100,10 +100,9 @@ static void pll_save(const struct pll *p, double *state)
         state[j] = st[j];
 }
 
-/* One sample (xa, xb, xc) through the loop: out (8,) = the angle used for it, the integrator after
+/* One sample (xa, xb, xc) through the loop: out (6,) = the angle used for it, the integrator after
  * it, cos and sin of the angle and of the mid angle angle + Ts omega / 2 (at which a
- * zero-order-held voltage is rotated), and the input's Park rotation d, q at the angle. Inlined
- * into the loops, p stays in registers. */
+ * zero-order-held voltage is rotated). Inlined into the loops, p stays in registers. */
 static inline __attribute__((always_inline)) void pll_step(struct pll *p, double xa, double xb, double xc,
                                                            double *out)
 {
@@ -132,8 +131,6 @@ static inline __attribute__((always_inline)) void pll_step(struct pll *p, double
     out[1] = p->om;
     out[2] = c;
     out[3] = s;
-    out[6] = d;
-    out[7] = q;
     const double half = 0.5 * p->ts * p->om;
     if (fabs(half) <= SMALL_ANGLE) {
         double ch, sh;
@@ -174,7 +171,7 @@ void pll_run(const double *x_abc, ptrdiff_t n, const double *clarke, const doubl
 {
     struct pll p = pll_load(clarke, par, state);
     for (ptrdiff_t k = 0; k < n; ++k) {
-        double out[8];
+        double out[6];
         pll_step(&p, x_abc[k], x_abc[n + k], x_abc[2 * n + k], out);
         theta[k] = out[0];
         omega[k] = out[1];
@@ -258,7 +255,7 @@ int block_rows(const double *i_abc, ptrdiff_t i_stride, const double *v_abc, ptr
     for (ptrdiff_t k = 0; k < n; ++k) {
         const double ia = i_abc[k], ib = i_abc[i_stride + k], ic = i_abc[2 * i_stride + k];
         const double va = v_abc[k], vb = v_abc[v_stride + k], vc = v_abc[2 * v_stride + k];
-        double a[8]; /* angle, omega, cos, sin, cos and sin of the mid angle, the PLL's d and q */
+        double a[6]; /* angle, omega, cos, sin, cos and sin of the mid angle */
         if (angle == NULL)
             pll_step(&p, finite_or_max(ia), finite_or_max(ib), finite_or_max(ic), a);
         else
@@ -269,19 +266,12 @@ int block_rows(const double *i_abc, ptrdiff_t i_stride, const double *v_abc, ptr
             turns += -two_pi * rint(step / two_pi);
         prev = a[0];
         unwrapped[k] = a[0] + turns;
-        const int i_ok = fabs(ia) < i_lim && fabs(ib) < i_lim && fabs(ic) < i_lim; /* finite too */
-        if (!(i_ok && fabs(va) < v_lim && fabs(vb) < v_lim && fabs(vc) < v_lim))
+        if (!(fabs(ia) < i_lim && fabs(ib) < i_lim && fabs(ic) < i_lim && fabs(va) < v_lim
+              && fabs(vb) < v_lim && fabs(vc) < v_lim))
             bad = 1;
-        double i_d, i_q;
-        if (angle == NULL && i_ok) { /* the PLL's input was these currents: its d, q are theirs */
-            i_d = a[6];
-            i_q = a[7];
-        } else {
-            const double i_al = c_aa * ia + c_ab * ib + c_ac * ic, i_be = c_ba * ia + c_bb * ib + c_bc * ic;
-            i_d = i_al * a[2] + i_be * a[3];
-            i_q = -i_al * a[3] + i_be * a[2];
-        }
+        const double i_al = c_aa * ia + c_ab * ib + c_ac * ic, i_be = c_ba * ia + c_bb * ib + c_bc * ic;
         const double v_al = c_aa * va + c_ab * vb + c_ac * vc, v_be = c_ba * va + c_bb * vb + c_bc * vc;
+        const double i_d = i_al * a[2] + i_be * a[3], i_q = -i_al * a[3] + i_be * a[2];
         const double v_d = v_al * a[4] + v_be * a[5], v_q = -v_al * a[5] + v_be * a[4];
 #define STORE_ROWS(r)                                                                                  \
     (r[k] = va, r[rs + k] = vb, r[2 * rs + k] = vc, r[3 * rs + k] = ia, r[4 * rs + k] = ib,                \
