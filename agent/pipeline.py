@@ -236,6 +236,7 @@ class DriveMonitor:
         self._spectra: dict[tuple[str, int], np.ndarray] = {}  # (model, window end sample) -> spectrum
         self._open: _OpenWindows | None = None  # the windows whose residual is being simulated hop by hop
         self._q_info: dict[int, tuple] = {}  # hop end sample -> (model, q-axis X^T X, X^T y)
+        self._newest: tuple[int, Signals] | None = None  # (end sample, signals) of the newest hop (_hop_signals)
         self._hop_sums: dict[int, HopSums] = {}  # hop end sample -> its sums (the span's hops)
         self.pll.reset()
         self.last_input = time.monotonic()
@@ -349,6 +350,19 @@ class DriveMonitor:
         return Signals(dq[:2], dq[2:], theta, r("omega_e"), 1.0 / self.rate, rows[3:6], rows[0:3],
                        self.profile.motor.pole_pairs)
 
+    def _hop_signals(self, end: int, phases: bool = False) -> Signals:
+        """The hop ending at stream sample ``end`` and the sample before it where the ring still holds
+        it, as float64 copies (:meth:`_signals`, unchecked); the newest hop's dq signals are read out
+        once (the residual simulation and the q-axis regression both read them)."""
+        if not phases and self._newest is not None and self._newest[0] == end == self._samples:
+            return self._newest[1]
+        back = self._samples - end
+        part = self._signals(self.n_hop + int(back + self.n_hop + 1 <= self._filled), back, checked=False,
+                             phases=phases)
+        if back == 0 and not phases:
+            self._newest = (end, part)
+        return part
+
     def _span_sums(self) -> HopSums:
         """The sums of the span's hops combined (the angle about the span's mean)."""
         hops = [self._hop_sums[e] for e in range(self._samples - self.n_span + self.n_hop, self._samples + 1, self.n_hop)]
@@ -420,7 +434,8 @@ class DriveMonitor:
             ow = self._open = _OpenWindows(name, self._samples - self.n_win)  # start afresh from the ring
         a0, a1 = model.state_matrices()
         for hop_end in range(ow.upto + self.n_hop, self._samples + 1, self.n_hop):
-            part = self._signals(self.n_hop, self._samples - hop_end, checked=False, phases=False)
+            part = self._hop_signals(hop_end)
+            part = part.slice(part.n - self.n_hop, part.n)
             ow.windows.append([hop_end - self.n_hop, [], part.i_dq[:, 0]])
             r, x = ltv_residuals(a0, a1, part.omega_e, model.exogenous(part), part.i_dq, part.theta_e,
                                  np.column_stack([win[2] for win in ow.windows]))
@@ -517,9 +532,7 @@ class DriveMonitor:
         ends = range(self._samples - self.n_span + self.n_hop, self._samples + 1, self.n_hop)
         for end in ends:
             if self._q_info.get(end, (None,))[0] != name:
-                back = self._samples - end
-                n = self.n_hop + int(back + self.n_hop + 1 <= self._filled)  # the sample before, if still held
-                part = self._signals(n, back, phases=bool(m.extra_q))
+                part = self._hop_signals(end, phases=bool(m.extra_q))  # a clean span (_hop judges no other)
                 x = np.array([t.column(part) for t in terms])[:, :-1]  # regressors(), transposed: rows
                 self._q_info[end] = (name, _gram(x), x @ part.i_dq[1, 1:])
         for old in [k for k in self._q_info if k not in ends]:
