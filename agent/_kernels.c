@@ -352,37 +352,42 @@ void ltv_residuals(const double *a0, const double *a1, const double *omega, cons
 void ring_sums(const void *ring, int f32, ptrdiff_t n_ring, const double *theta_ring, ptrdiff_t start,
                ptrdiff_t n, double *out)
 {
+    /* the n columns from start, wrapping: [start, start + first), then [0, n - first) */
+    const ptrdiff_t first = n < n_ring - start ? n : n_ring - start;
+    const ptrdiff_t seg_lo[2] = {start, 0}, seg_hi[2] = {start + first, n - first};
     double mean = 0.0;
-    for (ptrdiff_t k = 0, j = start; k < n; ++k, j = j + 1 == n_ring ? 0 : j + 1)
-        mean += theta_ring[j] - theta_ring[start];
+    for (int seg = 0; seg < 2; ++seg)
+        for (ptrdiff_t j = seg_lo[seg]; j < seg_hi[seg]; ++j)
+            mean += theta_ring[j] - theta_ring[start];
     mean = theta_ring[start] + mean / (double)n;
     double p = 0.0, w = 0.0, iq = 0.0, idq = 0.0, isq = 0.0, tt = 0.0, tw = 0.0, tp = 0.0, ww = 0.0, wp = 0.0;
     double lo_d = INFINITY, lo_q = INFINITY, hi_d = -INFINITY, hi_q = -INFINITY;
     int nan_d = 0, nan_q = 0;
     /* one loop per storage type (no test of it per sample) */
 #define SUM_RING(r)                                                                                  \
-    for (ptrdiff_t k = 0, j = start; k < n; ++k, j = j + 1 == n_ring ? 0 : j + 1) {                  \
-        const double om = r[6 * n_ring + j], i_d = r[7 * n_ring + j], i_q = r[8 * n_ring + j];       \
-        const double pw = (double)r[j] * r[3 * n_ring + j] + (double)r[n_ring + j] * r[4 * n_ring + j] \
-                          + (double)r[2 * n_ring + j] * r[5 * n_ring + j];                           \
-        const double dth = theta_ring[j] - mean;                                                     \
-        p += pw;                                                                                     \
-        w += om;                                                                                     \
-        iq += i_q;                                                                                   \
-        idq += i_d * i_q;                                                                            \
-        isq += i_d * i_d + i_q * i_q;                                                                \
-        tt += dth * dth;                                                                             \
-        tw += dth * om;                                                                              \
-        tp += dth * pw;                                                                              \
-        ww += om * om;                                                                               \
-        wp += om * pw;                                                                               \
-        nan_d |= isnan(i_d);                                                                         \
-        nan_q |= isnan(i_q);                                                                         \
-        lo_d = i_d < lo_d ? i_d : lo_d;                                                              \
-        hi_d = i_d > hi_d ? i_d : hi_d;                                                              \
-        lo_q = i_q < lo_q ? i_q : lo_q;                                                              \
-        hi_q = i_q > hi_q ? i_q : hi_q;                                                              \
-    }
+    for (int seg = 0; seg < 2; ++seg)                                                                \
+        for (ptrdiff_t j = seg_lo[seg]; j < seg_hi[seg]; ++j) {                                      \
+            const double om = r[6 * n_ring + j], i_d = r[7 * n_ring + j], i_q = r[8 * n_ring + j];   \
+            const double pw = (double)r[j] * r[3 * n_ring + j] + (double)r[n_ring + j] * r[4 * n_ring + j] \
+                              + (double)r[2 * n_ring + j] * r[5 * n_ring + j];                       \
+            const double dth = theta_ring[j] - mean;                                                 \
+            p += pw;                                                                                 \
+            w += om;                                                                                 \
+            iq += i_q;                                                                               \
+            idq += i_d * i_q;                                                                        \
+            isq += i_d * i_d + i_q * i_q;                                                            \
+            tt += dth * dth;                                                                         \
+            tw += dth * om;                                                                          \
+            tp += dth * pw;                                                                          \
+            ww += om * om;                                                                           \
+            wp += om * pw;                                                                           \
+            nan_d |= isnan(i_d);                                                                     \
+            nan_q |= isnan(i_q);                                                                     \
+            lo_d = i_d < lo_d ? i_d : lo_d;                                                          \
+            hi_d = i_d > hi_d ? i_d : hi_d;                                                          \
+            lo_q = i_q < lo_q ? i_q : lo_q;                                                          \
+            hi_q = i_q > hi_q ? i_q : hi_q;                                                          \
+        }
     if (f32) {
         const float *r32 = (const float *)ring;
         SUM_RING(r32)
