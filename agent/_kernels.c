@@ -18,8 +18,8 @@
 
 /* The interface's version (agent/kernels.py refuses a library built from another one). 2: the
  * PLL's state of 9 and its cos/sin output; 3: block_rows, ring_sums and ltv_residuals; 4: the
- * rows without the input power (ring_sums takes it from the phases). */
-int kernels_abi(void) { return 4; }
+ * rows without the input power (ring_sums takes it from the phases); 5: block_rows's row strides. */
+int kernels_abi(void) { return 5; }
 
 /* cos and sin of a small angle x (|x| <= SMALL_ANGLE) by their Taylor series, short where |x| <=
  * 1/16 (to x^8 / x^9) and to x^14 / x^13 above: the first term left out is below 1e-19 there,
@@ -219,7 +219,8 @@ static inline double finite_or_max(double x)
 
 /* One block of the streaming pipeline's signal rows (agent/pipeline.py), in one pass.
  *
- * i_abc, v_abc (3, n): phase currents, A, and voltages, V. clarke (2, 3): the Clarke rows giving
+ * i_abc, v_abc (3, n): phase currents, A, and voltages, V, their rows i_stride and v_stride elements
+ * apart (views of longer records need no copy). clarke (2, 3): the Clarke rows giving
  * alpha, beta. limits (2,): |i| and |v| at or above which a sample is saturated.
  * theta_last: the unwrapped angle of the sample before the block, rad.
  * The angle: either angle (6, n): the angle (rad, wrapped or not), speed (rad/s), cos and sin of the
@@ -228,14 +229,16 @@ static inline double finite_or_max(double x)
  *            pll_state as pll_run's (the state updated in place).
  * unwrapped (n,), written: the angle unwrapped continuing theta_last (np.unwrap's result: a step
  *            of pi or more is taken back by whole turns).
- * rows (11, n), written (float when f32, else double): va vb vc ia ib ic omega i_d i_q v_d v_q
+ * rows (11, n), written (float when f32, else double), its rows rows_stride elements apart (a span
+ *            of the pipeline's ring): va vb vc ia ib ic omega i_d i_q v_d v_q
  *            (kernels.ROWS): the phases, the Park rotations of the currents at the angle and
  *            of the voltages at the mid angle (the input power v.i is summed from the phases).
  * Returns 1 when a sample is NaN or saturated, else 0.
  */
-int block_rows(const double *i_abc, const double *v_abc, ptrdiff_t n, const double *clarke, const double *limits,
-               double theta_last, const double *angle, const double *pll_par, double *pll_state,
-               double *unwrapped, void *rows, int f32)
+int block_rows(const double *i_abc, ptrdiff_t i_stride, const double *v_abc, ptrdiff_t v_stride, ptrdiff_t n,
+               const double *clarke, const double *limits, double theta_last, const double *angle,
+               const double *pll_par, double *pll_state, double *unwrapped, void *rows, ptrdiff_t rows_stride,
+               int f32)
 {
     const double c_aa = clarke[0], c_ab = clarke[1], c_ac = clarke[2];
     const double c_ba = clarke[3], c_bb = clarke[4], c_bc = clarke[5];
@@ -245,12 +248,13 @@ int block_rows(const double *i_abc, const double *v_abc, ptrdiff_t n, const doub
         p = pll_load(clarke, pll_par, pll_state);
     float *r32 = (float *)rows;
     double *r64 = (double *)rows;
+    const ptrdiff_t rs = rows_stride;
     double prev = theta_last, turns = 0.0;
     int bad = 0;
 
     for (ptrdiff_t k = 0; k < n; ++k) {
-        const double ia = i_abc[k], ib = i_abc[n + k], ic = i_abc[2 * n + k];
-        const double va = v_abc[k], vb = v_abc[n + k], vc = v_abc[2 * n + k];
+        const double ia = i_abc[k], ib = i_abc[i_stride + k], ic = i_abc[2 * i_stride + k];
+        const double va = v_abc[k], vb = v_abc[v_stride + k], vc = v_abc[2 * v_stride + k];
         double a[6]; /* angle, omega, cos, sin, cos and sin of the mid angle */
         if (angle == NULL)
             pll_step(&p, finite_or_max(ia), finite_or_max(ib), finite_or_max(ic), a);
@@ -269,10 +273,10 @@ int block_rows(const double *i_abc, const double *v_abc, ptrdiff_t n, const doub
         const double v_al = c_aa * va + c_ab * vb + c_ac * vc, v_be = c_ba * va + c_bb * vb + c_bc * vc;
         const double i_d = i_al * a[2] + i_be * a[3], i_q = -i_al * a[3] + i_be * a[2];
         const double v_d = v_al * a[4] + v_be * a[5], v_q = -v_al * a[5] + v_be * a[4];
-#define STORE_ROWS(r)                                                                                   \
-    (r[k] = va, r[n + k] = vb, r[2 * n + k] = vc, r[3 * n + k] = ia, r[4 * n + k] = ib, r[5 * n + k] = ic, \
-     r[6 * n + k] = a[1], r[7 * n + k] = i_d, r[8 * n + k] = i_q, r[9 * n + k] = v_d,                   \
-     r[10 * n + k] = v_q)
+#define STORE_ROWS(r)                                                                                  \
+    (r[k] = va, r[rs + k] = vb, r[2 * rs + k] = vc, r[3 * rs + k] = ia, r[4 * rs + k] = ib,                \
+     r[5 * rs + k] = ic, r[6 * rs + k] = a[1], r[7 * rs + k] = i_d, r[8 * rs + k] = i_q, r[9 * rs + k] = v_d, \
+     r[10 * rs + k] = v_q)
         if (f32)
             STORE_ROWS(r32); /* rounded to float */
         else
@@ -348,37 +352,42 @@ void ltv_residuals(const double *a0, const double *a1, const double *omega, cons
 void ring_sums(const void *ring, int f32, ptrdiff_t n_ring, const double *theta_ring, ptrdiff_t start,
                ptrdiff_t n, double *out)
 {
+    /* the n columns from start, wrapping: [start, start + first), then [0, n - first) */
+    const ptrdiff_t first = n < n_ring - start ? n : n_ring - start;
+    const ptrdiff_t seg_lo[2] = {start, 0}, seg_hi[2] = {start + first, n - first};
     double mean = 0.0;
-    for (ptrdiff_t k = 0, j = start; k < n; ++k, j = j + 1 == n_ring ? 0 : j + 1)
-        mean += theta_ring[j] - theta_ring[start];
+    for (int seg = 0; seg < 2; ++seg)
+        for (ptrdiff_t j = seg_lo[seg]; j < seg_hi[seg]; ++j)
+            mean += theta_ring[j] - theta_ring[start];
     mean = theta_ring[start] + mean / (double)n;
     double p = 0.0, w = 0.0, iq = 0.0, idq = 0.0, isq = 0.0, tt = 0.0, tw = 0.0, tp = 0.0, ww = 0.0, wp = 0.0;
     double lo_d = INFINITY, lo_q = INFINITY, hi_d = -INFINITY, hi_q = -INFINITY;
     int nan_d = 0, nan_q = 0;
     /* one loop per storage type (no test of it per sample) */
 #define SUM_RING(r)                                                                                  \
-    for (ptrdiff_t k = 0, j = start; k < n; ++k, j = j + 1 == n_ring ? 0 : j + 1) {                  \
-        const double om = r[6 * n_ring + j], i_d = r[7 * n_ring + j], i_q = r[8 * n_ring + j];       \
-        const double pw = (double)r[j] * r[3 * n_ring + j] + (double)r[n_ring + j] * r[4 * n_ring + j] \
-                          + (double)r[2 * n_ring + j] * r[5 * n_ring + j];                           \
-        const double dth = theta_ring[j] - mean;                                                     \
-        p += pw;                                                                                     \
-        w += om;                                                                                     \
-        iq += i_q;                                                                                   \
-        idq += i_d * i_q;                                                                            \
-        isq += i_d * i_d + i_q * i_q;                                                                \
-        tt += dth * dth;                                                                             \
-        tw += dth * om;                                                                              \
-        tp += dth * pw;                                                                              \
-        ww += om * om;                                                                               \
-        wp += om * pw;                                                                               \
-        nan_d |= isnan(i_d);                                                                         \
-        nan_q |= isnan(i_q);                                                                         \
-        lo_d = i_d < lo_d ? i_d : lo_d;                                                              \
-        hi_d = i_d > hi_d ? i_d : hi_d;                                                              \
-        lo_q = i_q < lo_q ? i_q : lo_q;                                                              \
-        hi_q = i_q > hi_q ? i_q : hi_q;                                                              \
-    }
+    for (int seg = 0; seg < 2; ++seg)                                                                \
+        for (ptrdiff_t j = seg_lo[seg]; j < seg_hi[seg]; ++j) {                                      \
+            const double om = r[6 * n_ring + j], i_d = r[7 * n_ring + j], i_q = r[8 * n_ring + j];   \
+            const double pw = (double)r[j] * r[3 * n_ring + j] + (double)r[n_ring + j] * r[4 * n_ring + j] \
+                              + (double)r[2 * n_ring + j] * r[5 * n_ring + j];                       \
+            const double dth = theta_ring[j] - mean;                                                 \
+            p += pw;                                                                                 \
+            w += om;                                                                                 \
+            iq += i_q;                                                                               \
+            idq += i_d * i_q;                                                                        \
+            isq += i_d * i_d + i_q * i_q;                                                            \
+            tt += dth * dth;                                                                         \
+            tw += dth * om;                                                                          \
+            tp += dth * pw;                                                                          \
+            ww += om * om;                                                                           \
+            wp += om * pw;                                                                           \
+            nan_d |= isnan(i_d);                                                                     \
+            nan_q |= isnan(i_q);                                                                     \
+            lo_d = i_d < lo_d ? i_d : lo_d;                                                          \
+            hi_d = i_d > hi_d ? i_d : hi_d;                                                          \
+            lo_q = i_q < lo_q ? i_q : lo_q;                                                          \
+            hi_q = i_q > hi_q ? i_q : hi_q;                                                          \
+        }
     if (f32) {
         const float *r32 = (const float *)ring;
         SUM_RING(r32)

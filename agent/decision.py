@@ -108,15 +108,14 @@ def shared_pairs(profile, fe_hz: float, resolution_hz: float) -> dict[tuple[str,
     return out
 
 
-def family_verdict(peaks: list[dict], profile, fe_hz: float, resolution_hz: float) -> dict:
+def family_verdict(peaks: list[dict], shared: dict) -> dict:
     """The component most likely at fault from every line of :func:`spectrum_peaks` (module
-    docstring): ``{"family": best or None, "families": [{"family", "score", "level", "pairs":
-    [{"k", "z", "level", "shared_with"}]}] best first}``; ``family`` is None when no pair is above
-    TH2."""
+    docstring; ``shared``: :func:`shared_pairs`): ``{"family": best or None, "families": [{"family",
+    "score", "level", "pairs": [{"k", "z", "level", "shared_with"}]}] best first}``; ``family`` is
+    None when no pair is above TH2."""
     pairs: dict[tuple[str, int], list[dict]] = {}
     for p in peaks:
         pairs.setdefault((p["family"], p["k"]), []).append(p)
-    shared = shared_pairs(profile, fe_hz, resolution_hz)
     families = []
     for family in dict.fromkeys(f for f, _ in pairs):
         rows = []
@@ -222,19 +221,41 @@ def record_evidence(baseline: Baseline, freqs: np.ndarray, amp: np.ndarray, poin
     return out
 
 
+def _resolution(freqs: np.ndarray) -> float:
+    """The spectrum's bin spacing, Hz (0 for one bin)."""
+    return float(freqs[1] - freqs[0]) if freqs.size > 1 else 0.0
+
+
+def _spectrum_levels(baseline: Baseline, freqs: np.ndarray, amp: np.ndarray, fe_hz: float):
+    """Every fault line (:func:`spectrum_peaks`), the spectrum state and the flagged lines
+    (:func:`spectrum_decision` by the baseline's rule)."""
+    peaks = spectrum_peaks(baseline, freqs, amp, fe_hz)
+    return peaks, *spectrum_decision(peaks, baseline.settings.get("spectrum_rule", "pair"))
+
+
+def listed_peaks(baseline: Baseline, freqs: np.ndarray, amp: np.ndarray, fe_hz: float) -> list[dict]:
+    """The flagged lines as :func:`decide` lists them (its ``peaks``), without the rest of its
+    diagnosis: the family verdict that orders them is only worked out when a line is flagged (the
+    streaming pipeline's display, every hop)."""
+    peaks, _, flagged = _spectrum_levels(baseline, freqs, amp, fe_hz)
+    if not flagged:
+        return []
+    shared = shared_pairs(baseline.profile, fe_hz, _resolution(freqs))
+    return _listed_once(flagged, family_verdict(peaks, shared), shared)
+
+
 def decide(baseline: Baseline, freqs: np.ndarray, amp: np.ndarray, point: np.ndarray, op: dict,
            source: str = "") -> Diagnosis:
     """Table 4 from the residual spectra of the windows (n_windows, bins) and the cluster point."""
-    peaks = spectrum_peaks(baseline, freqs, amp, op["fe_hz"])
-    spectrum_state, flagged = spectrum_decision(peaks, baseline.settings.get("spectrum_rule", "pair"))
-    resolution = float(freqs[1] - freqs[0]) if freqs.size > 1 else 0.0
-    verdict = family_verdict(peaks, baseline.profile, op["fe_hz"], resolution)
+    peaks, spectrum_state, flagged = _spectrum_levels(baseline, freqs, amp, op["fe_hz"])
+    shared = shared_pairs(baseline.profile, op["fe_hz"], _resolution(freqs))
+    verdict = family_verdict(peaks, shared)
     d2 = baseline.cluster.distance2(point)
     cluster_state = "warning" if d2 > baseline.cluster.limit else "normal"
     return Diagnosis(
         record=source, state=worst(spectrum_state, cluster_state), spectrum_state=spectrum_state,
         cluster_state=cluster_state,
-        peaks=_listed_once(flagged, verdict, shared_pairs(baseline.profile, op["fe_hz"], resolution)),
+        peaks=_listed_once(flagged, verdict, shared),
         verdict=verdict, reason=verdict_text(verdict),
         cluster={"ts_over_lq": float(point[0]), "b_gt": float(point[1]), "distance2": d2,
                  "limit": baseline.cluster.limit, "confidence": baseline.cluster.confidence},

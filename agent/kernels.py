@@ -20,7 +20,7 @@ from numpy.ctypeslib import ndpointer
 _NAME = "_kernels"
 
 
-_ABI = 4  #: the interface of agent/_kernels.c this module calls (its kernels_abi())
+_ABI = 5  #: the interface of agent/_kernels.c this module calls (its kernels_abi())
 
 
 def _load() -> ctypes.CDLL:
@@ -49,9 +49,9 @@ _lib.simulate_ltv.argtypes = [_IN, _IN, _IN, _IN, _IN, ctypes.c_ssize_t, _OUT]
 _lib.ltv_residuals.restype = None
 _lib.ltv_residuals.argtypes = [_IN, _IN, _IN, _IN, _IN, _IN, ctypes.c_ssize_t, ctypes.c_ssize_t, _OUT, _OUT]
 _lib.block_rows.restype = ctypes.c_int
-_lib.block_rows.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_ssize_t, ctypes.c_void_p, ctypes.c_void_p,
-                            ctypes.c_double, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
-                            ctypes.c_void_p, ctypes.c_int]
+_lib.block_rows.argtypes = [ctypes.c_void_p, ctypes.c_ssize_t, ctypes.c_void_p, ctypes.c_ssize_t, ctypes.c_ssize_t,
+                            ctypes.c_void_p, ctypes.c_void_p, ctypes.c_double, ctypes.c_void_p, ctypes.c_void_p,
+                            ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_ssize_t, ctypes.c_int]
 _lib.ring_sums.restype = None
 _lib.ring_sums.argtypes = [ctypes.c_void_p, ctypes.c_int, ctypes.c_ssize_t, _IN, ctypes.c_ssize_t,
                            ctypes.c_ssize_t, _OUT]
@@ -132,32 +132,64 @@ def _rows_dtype(a: np.ndarray, shape: tuple[int, int], name: str) -> int:
     return int(a.dtype == np.float32)
 
 
-def block_rows(i_abc, v_abc, clarke, limits, theta_last: float, rows: np.ndarray, angle=None, pll=None):
+def _row_stride(a: np.ndarray) -> int | None:
+    """The distance between the rows of the 2-D ``a`` in elements, when each row is contiguous (a
+    C-contiguous array, or a span of columns of one); else None."""
+    size = a.itemsize
+    return a.strides[0] // size if a.strides[1] == size and a.strides[0] % size == 0 else None
+
+
+def _f64_rows(a, n_rows: int, name: str) -> tuple[np.ndarray, int]:
+    """``a`` as float64 ``(n_rows, N)`` with contiguous rows (a copy only when it has not) and its
+    row stride in elements."""
+    a = np.asarray(a, dtype=np.float64)
+    stride = _row_stride(a) if a.ndim == 2 else None
+    if stride is None:
+        a = _f64(a, (n_rows, None), name)
+        stride = a.shape[1]
+    elif a.shape[0] != n_rows:
+        raise ValueError(f"{name} must be shaped ({n_rows}, N), got {a.shape}")
+    return a, stride
+
+
+def block_rows(i_abc, v_abc, clarke, limits, theta_last: float, rows: np.ndarray, angle=None, pll=None,
+               unwrapped: np.ndarray | None = None):
     """One block of the streaming pipeline's signal rows in one pass; writes ``rows`` ``(11, N)``
     (float32 or float64, :data:`ROWS`: the phases, speed, the currents' Park rotation at the angle,
-    the voltages' at the mid angle) from ``i_abc``, ``v_abc`` ``(3, N)`` (A, V).
+    the voltages' at the mid angle) from ``i_abc``, ``v_abc`` ``(3, N)`` (A, V). Rows of contiguous
+    columns are read and written in place (views of a record, a span of the pipeline's ring).
 
     The angle is either ``angle`` ``(6, N)``: angle (rad), speed (rad/s), cos and sin of the angle
     and of the mid angle angle + Ts speed / 2; or the PLL's over the currents (non-finite samples
     as :func:`numpy.nan_to_num` makes them), ``pll`` = (par, state) as :func:`pll_run`'s.
     ``clarke`` ``(2, 3)``; ``limits`` = (max |i|, max |v|): saturation; ``theta_last``: the unwrapped
-    angle before the block, rad. Returns the angle unwrapped from ``theta_last`` ``(N,)``, whether
-    a sample is NaN or saturated, and the PLL's new state (None with ``angle``)."""
-    i = _f64(i_abc, (3, None), "i_abc")
+    angle before the block, rad. Returns the angle unwrapped from ``theta_last`` ``(N,)`` (written
+    into ``unwrapped`` when given, float64), whether a sample is NaN or saturated, and the PLL's new
+    state (None with ``angle``)."""
+    i, i_stride = _f64_rows(i_abc, 3, "i_abc")
+    v, v_stride = _f64_rows(v_abc, 3, "v_abc")
     n = i.shape[1]
-    v, cl, lim = _f64(v_abc, (3, n), "v_abc"), _f64(clarke, (2, 3), "clarke"), _f64(limits, (2,), "limits")
-    f32 = _rows_dtype(rows, (len(ROWS), n), "rows")
+    cl, lim = _f64(clarke, (2, 3), "clarke"), _f64(limits, (2,), "limits")
+    rows_stride = _row_stride(rows) if rows.ndim == 2 else None
+    if (v.shape[1] != n or rows.dtype not in (np.float32, np.float64) or rows_stride is None
+            or rows.shape != (len(ROWS), n) or not rows.flags.writeable):
+        raise ValueError(f"block_rows: v_abc (3, {n}) and rows ({len(ROWS)}, {n}), float32 or float64 with "
+                         f"contiguous rows, needed; got {v.shape} and {rows.shape}")
     if (angle is None) == (pll is None):
         raise ValueError("block_rows: give either angle or pll")
-    unwrapped = np.empty(n)
+    if unwrapped is None:
+        unwrapped = np.empty(n)
+    elif unwrapped.dtype != np.float64 or unwrapped.shape != (n,) or not unwrapped.flags.c_contiguous:
+        raise ValueError(f"block_rows: unwrapped must be a contiguous float64 array shaped ({n},)")
     if angle is not None:
         ang, par, zf = _f64(angle, (6, n), "angle"), None, None
     else:
         ang, par = None, _f64(pll[0], (PLL_N_PAR,), "par")
         zf = _f64(np.array(pll[1], dtype=np.float64), (PLL_N_STATE,), "zi")  # a copy, updated in place
     ptr = lambda a: None if a is None else a.ctypes.data  # noqa: E731
-    bad = _lib.block_rows(i.ctypes.data, v.ctypes.data, n, cl.ctypes.data, lim.ctypes.data, float(theta_last),
-                          ptr(ang), ptr(par), ptr(zf), unwrapped.ctypes.data, rows.ctypes.data, f32)
+    bad = _lib.block_rows(i.ctypes.data, i_stride, v.ctypes.data, v_stride, n, cl.ctypes.data, lim.ctypes.data,
+                          float(theta_last), ptr(ang), ptr(par), ptr(zf), unwrapped.ctypes.data, rows.ctypes.data,
+                          rows_stride, int(rows.dtype == np.float32))
     return unwrapped, bool(bad), zf
 
 

@@ -42,7 +42,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from agent.baseline import SEARCH_BINS, BaselineBuilder, TrainingRecord, residual_spectra
-from agent.decision import STATES, decide
+from agent.decision import STATES, listed_peaks
 from agent.evidence import FULL_EVIDENCE_STRETCHES, AlarmConfig, AlarmLogic, feature_values, learning_shift
 from agent.frames import CLARKE, cos_sin32
 from agent.identify import cluster_point, operating_point_of_means, solve_torque
@@ -236,6 +236,7 @@ class DriveMonitor:
         self._spectra: dict[tuple[str, int], np.ndarray] = {}  # (model, window end sample) -> spectrum
         self._open: _OpenWindows | None = None  # the windows whose residual is being simulated hop by hop
         self._q_info: dict[int, tuple] = {}  # hop end sample -> (model, q-axis X^T X, X^T y)
+        self._newest: tuple[int, Signals] | None = None  # (end sample, signals) of the newest hop (_hop_signals)
         self._hop_sums: dict[int, HopSums] = {}  # hop end sample -> its sums (the span's hops)
         self.pll.reset()
         self.last_input = time.monotonic()
@@ -253,31 +254,42 @@ class DriveMonitor:
         self._encoder = block.theta_e is not None
         # one C pass: the ring's rows (Clarke, Park), the saturation check and the angle
         # unwrapped across blocks (Signals wants it so); kept below 2^20 rad by shifting the whole
-        # buffer by whole turns, which changes no cosine and no difference
-        data = np.empty((len(ROWS), block.n), dtype=self._ring.dtype)
+        # buffer by whole turns, which changes no cosine and no difference. A block that neither
+        # completes a hop before its end nor wraps the ring is written straight into the ring; else
+        # it is pushed hop by hop (a hop is assessed before the next overwrites the span's oldest).
+        w = self._write
+        direct = block.n <= min(self.n_hop - self._since_hop, self.n_span - w)
+        if direct:
+            data, theta = self._ring[:, w:w + block.n], self._theta[w:w + block.n]
+        else:
+            data, theta = np.empty((len(ROWS), block.n), dtype=self._ring.dtype), np.empty(block.n)
         if block.theta_e is not None:
-            theta = block.theta_e
-            omega = block.omega_e if block.omega_e is not None else np.gradient(np.unwrap(theta)) * self.rate
-            angle = np.concatenate(([theta], [omega], cos_sin32(theta), cos_sin32(theta + 0.5 * omega / self.rate)))
-            theta, bad, _ = block_rows(block.i_abc, block.v_abc, CLARKE[:2], self._limits, self._theta_last, data,
-                                       angle=angle)
+            angle = block.theta_e
+            omega = block.omega_e if block.omega_e is not None else np.gradient(np.unwrap(angle)) * self.rate
+            angle = np.concatenate(([angle], [omega], cos_sin32(angle), cos_sin32(angle + 0.5 * omega / self.rate)))
+            _, bad, _ = block_rows(block.i_abc, block.v_abc, CLARKE[:2], self._limits, self._theta_last, data,
+                                   angle=angle, unwrapped=theta)
         else:
             if self._samples == 0:  # a new stream: the PLL starts where it starts, as offline (record_signals)
                 self.pll.reset(block.i_abc)
             # the PLL's loop writes the rows (its angle's cos and sin and the voltages' mid angle's at hand)
-            theta, bad = self.pll.process_rows(block.i_abc, block.v_abc, self._limits, self._theta_last, data)
+            _, bad = self.pll.process_rows(block.i_abc, block.v_abc, self._limits, self._theta_last, data, theta)
         if bad:
             self._bad_until = self._samples + block.n + self.n_span  # spans containing this block are bad
         if theta[-1] > _THETA_LIMIT:
             turns = 2 * np.pi * np.floor(theta[0] / (2 * np.pi))
-            theta = theta - turns
-            self._theta -= turns
+            self._theta -= turns  # with the block when it is written there
+            if not direct:
+                theta -= turns
             self._hop_sums = {k: replace(h, theta_mean=h.theta_mean - turns) for k, h in self._hop_sums.items()}
         self._theta_last = theta[-1]
         out, pos = [], 0
         while pos < block.n:
             take = min(block.n - pos, self.n_hop - self._since_hop)
-            self._push(data[:, pos:pos + take], theta[pos:pos + take])
+            if direct:
+                self._advance(take)
+            else:
+                self._push(data[:, pos:pos + take], theta[pos:pos + take])
             pos += take
             self._since_hop += take
             if self._since_hop == self.n_hop:
@@ -298,6 +310,10 @@ class DriveMonitor:
         self._theta[self._write:self._write + first] = theta[:first]
         self._ring[:, :n - first] = chunk[:, first:]
         self._theta[:n - first] = theta[first:]
+        self._advance(n)
+
+    def _advance(self, n: int) -> None:
+        """Count ``n`` samples written into the ring at its write position."""
         self._write = (self._write + n) % self.n_span
         self._filled = min(self.n_span, self._filled + n)
         self._samples += n
@@ -333,6 +349,19 @@ class DriveMonitor:
             return Signals(dq[:2], dq[2:], theta, r("omega_e"), 1.0 / self.rate, pole_pairs=self.profile.motor.pole_pairs)
         return Signals(dq[:2], dq[2:], theta, r("omega_e"), 1.0 / self.rate, rows[3:6], rows[0:3],
                        self.profile.motor.pole_pairs)
+
+    def _hop_signals(self, end: int, phases: bool = False) -> Signals:
+        """The hop ending at stream sample ``end`` and the sample before it where the ring still holds
+        it, as float64 copies (:meth:`_signals`, unchecked); the newest hop's dq signals are read out
+        once (the residual simulation and the q-axis regression both read them)."""
+        if not phases and self._newest is not None and self._newest[0] == end == self._samples:
+            return self._newest[1]
+        back = self._samples - end
+        part = self._signals(self.n_hop + int(back + self.n_hop + 1 <= self._filled), back, checked=False,
+                             phases=phases)
+        if back == 0 and not phases:
+            self._newest = (end, part)
+        return part
 
     def _span_sums(self) -> HopSums:
         """The sums of the span's hops combined (the angle about the span's mean)."""
@@ -405,7 +434,8 @@ class DriveMonitor:
             ow = self._open = _OpenWindows(name, self._samples - self.n_win)  # start afresh from the ring
         a0, a1 = model.state_matrices()
         for hop_end in range(ow.upto + self.n_hop, self._samples + 1, self.n_hop):
-            part = self._signals(self.n_hop, self._samples - hop_end, checked=False, phases=False)
+            part = self._hop_signals(hop_end)
+            part = part.slice(part.n - self.n_hop, part.n)
             ow.windows.append([hop_end - self.n_hop, [], part.i_dq[:, 0]])
             r, x = ltv_residuals(a0, a1, part.omega_e, model.exogenous(part), part.i_dq, part.theta_e,
                                  np.column_stack([win[2] for win in ow.windows]))
@@ -466,11 +496,11 @@ class DriveMonitor:
         y = feature_values(freqs, spectra, self.profile, op["fe_hz"], base.evidence.features, SEARCH_BINS)
         v = self.alarms.step(base.evidence, self.profile, y[-1], point, op["input_power_pct"], op["fe_hz"],
                              self.config.hop_s)
-        d = decide(base, freqs, spectra, point, op, self.drive)  # the paper's rule: peaks for display
         self._reading = (name, TrainingRecord(f"{self.drive} (live)", op, None, spectra, point))
         return self._set(quality="good", model=name, state=self._hold(v.state), spectrum_state=v.spectrum_state,
                          cluster_state=v.cluster_state, fe_hz=op["fe_hz"], load_pct=op["load_pct"],
-                         peaks=d.peaks, cluster_distance2=d.cluster["distance2"], reason=v.reason,
+                         peaks=listed_peaks(base, freqs, spectra, op["fe_hz"]),  # the paper's rule, for display
+                         cluster_distance2=base.cluster.distance2(point), reason=v.reason,
                          evidence=v.evidence, settling=v.settling)
 
     def _span_ends(self):
@@ -502,9 +532,7 @@ class DriveMonitor:
         ends = range(self._samples - self.n_span + self.n_hop, self._samples + 1, self.n_hop)
         for end in ends:
             if self._q_info.get(end, (None,))[0] != name:
-                back = self._samples - end
-                n = self.n_hop + int(back + self.n_hop + 1 <= self._filled)  # the sample before, if still held
-                part = self._signals(n, back, phases=bool(m.extra_q))
+                part = self._hop_signals(end, phases=bool(m.extra_q))  # a clean span (_hop judges no other)
                 x = np.array([t.column(part) for t in terms])[:, :-1]  # regressors(), transposed: rows
                 self._q_info[end] = (name, _gram(x), x @ part.i_dq[1, 1:])
         for old in [k for k in self._q_info if k not in ends]:

@@ -112,14 +112,15 @@ class PLL:
         theta, omega, self._state, cs = pll_run(x, self._clarke, self._par, self._state, cos_sin=True)
         return (theta, omega, cs) if cos_sin else (theta, omega)
 
-    def process_rows(self, i_abc, v_abc, limits, theta_last: float, rows: np.ndarray) -> tuple[np.ndarray, bool]:
+    def process_rows(self, i_abc, v_abc, limits, theta_last: float, rows: np.ndarray,
+                     unwrapped: np.ndarray | None = None) -> tuple[np.ndarray, bool]:
         """Track a block of currents ``i_abc`` ``(3, N)`` (non-finite samples taken as
         :func:`numpy.nan_to_num` makes them) and write, in the same pass, the streaming pipeline's
         signal rows from it and ``v_abc`` (:func:`agent.kernels.block_rows`: ``rows`` ``(11, N)``;
-        ``limits`` = max |i|, |v|). Returns ``theta_e`` unwrapped from ``theta_last`` (rad) and
-        whether a sample is NaN or saturated."""
+        ``limits`` = max |i|, |v|). Returns ``theta_e`` unwrapped from ``theta_last`` (rad; written
+        into ``unwrapped`` when given) and whether a sample is NaN or saturated."""
         theta, bad, self._state = block_rows(i_abc, v_abc, self._clarke, limits, theta_last, rows,
-                                             pll=(self._par, self._state))
+                                             pll=(self._par, self._state), unwrapped=unwrapped)
         return theta, bad
 
 

@@ -212,11 +212,14 @@ def test_block_rows_through_the_pll_equals_pll_run_then_numpy(with_nan):
     np.testing.assert_allclose(rows, want, rtol=1e-12, atol=1e-9)  # NaN where numpy has NaN
     pll2 = PLL(FS, 100.0)
     pll2._state = pll._state.copy()
-    for k in range(0, n, 1234):  # in blocks: the same stream
+    ring = np.full((11, n + 7), -1.0)  # written in place, block by block, into a wider array's columns
+    for k in range(0, n, 1234):  # in blocks (views of the record): the same stream
         part, _ = pll2.process_rows(i_abc[:, k:k + 1234], v_abc[:, k:k + 1234], [1e9, 1e9],
-                                    got[k - 1] if k else -5.0, rows[:, k:k + 1234].copy())
+                                    got[k - 1] if k else -5.0, ring[:, k:min(k + 1234, n)])
         np.testing.assert_allclose(part, got[k:k + 1234], rtol=1e-15, atol=0)  # turns added per block
     np.testing.assert_array_equal(pll2._state, zf)
+    np.testing.assert_array_equal(ring[:, :n], rows)
+    assert np.all(ring[:, n:] == -1.0)
 
 
 def sums_reference(rows, theta):
