@@ -299,6 +299,7 @@ class DriveMonitor:
                 for old in [k for k in self._hop_sums if k <= self._samples - self.n_span]:
                     del self._hop_sums[old]
                 status = self._hop()
+                self._newest = None  # the hop's float64 read-out lives while it is judged (1.2 MB a drive)
                 if status is not None:
                     out.append(status)
         return out

@@ -513,6 +513,29 @@ def _claimable(row: dict) -> bool:
                 and (row["explained_fraction"] or 0.0) >= MIN_EXPLAINED)
 
 
+def _too_small(row: dict) -> bool:
+    """Claimable but for its share: it explains less than ``MIN_EXPLAINED`` of the control's error."""
+    return bool(row["identifiable"] and not row["at_bound"] and not row.get("negligible")
+                and 0.0 < (row["explained_fraction"] or 0.0) < MIN_EXPLAINED)
+
+
+def floor_ratio(h_ctrl: dict) -> float | None:
+    """The control's held-out NRMSE over its noise floor, or None."""
+    floor = (h_ctrl.get("noise_floor") or {}).get("total")
+    total = _total(h_ctrl)
+    return total / floor if floor and total is not None else None
+
+
+def too_small_note(share: float, ratio: float | None) -> str:
+    """Why a candidate whose test passes is not claimed: its ``share`` of the control's held-out
+    error is below ``MIN_EXPLAINED`` (a real but minor part; ``ratio``: the control over its noise
+    floor, where what is left is larger than any candidate explains)."""
+    left = (f"; the control is {ratio:.3g} times its noise floor, so a larger error that no candidate explains is "
+            f"left" if ratio is not None and ratio > 2.0 else "")
+    return (f"not claimed: its test passes, but it explains {share:.1%} of the control's held-out error, below the "
+            f"{MIN_EXPLAINED:.0%} a claim needs{left}")
+
+
 def _forward(rows: list[dict], fits: dict, preps: list[Prepared], base: dict, prior: dict, own: dict) -> None:
     """Forward selection after the ranking: with the significant effects accepted (their refit the
     new control), each remaining candidate that explained at least ``MIN_EXPLAINED`` on its own is
@@ -665,8 +688,15 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
                 f"significant against the control alone, not on top of {leader['effect']}: it takes up part of "
                 f"that effect's error")]))
     for row, h in zip(rows, held):
-        if not row["significant"] and _claimable(row) and row["p_value"] < 1.0:
-            row["note"] = "; ".join(filter(None, [row.get("note"), too_few_note(h_ctrl, h, level, row["p_value"])]))
+        if row["significant"] or row["p_value"] >= 1.0:
+            continue
+        if _claimable(row):
+            why = too_few_note(h_ctrl, h, level, row["p_value"])
+        elif _too_small(row) and row["p_value"] < level:
+            why = too_small_note(row["explained_fraction"], floor_ratio(h_ctrl))
+        else:
+            continue
+        row["note"] = "; ".join(filter(None, [row.get("note"), why]))
     rows.sort(key=lambda r: (r["significant"], r["explained_fraction"] if r["explained_fraction"] is not None
                              else -np.inf), reverse=True)
     doc = _document(baseline, preps, before, h_ctrl, dyn, rows, t0)
