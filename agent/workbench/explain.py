@@ -508,15 +508,18 @@ def twin_note(first: str, other: str, share: float, basis: str = "reproduced") -
     return f"not claimed: these records cannot tell {first} from {other} ({why}); {how} would separate them"
 
 
+def _readable(row: dict) -> bool:
+    """The records pin the candidate within its physical range, beyond the model's own approximations."""
+    return bool(row["identifiable"] and not row["at_bound"] and not row.get("negligible"))
+
+
 def _claimable(row: dict) -> bool:
-    return bool(row["identifiable"] and not row["at_bound"] and not row.get("negligible")
-                and (row["explained_fraction"] or 0.0) >= MIN_EXPLAINED)
+    return _readable(row) and (row["explained_fraction"] or 0.0) >= MIN_EXPLAINED
 
 
 def _too_small(row: dict) -> bool:
     """Claimable but for its share: it explains less than ``MIN_EXPLAINED`` of the control's error."""
-    return bool(row["identifiable"] and not row["at_bound"] and not row.get("negligible")
-                and 0.0 < (row["explained_fraction"] or 0.0) < MIN_EXPLAINED)
+    return _readable(row) and 0.0 < (row["explained_fraction"] or 0.0) < MIN_EXPLAINED
 
 
 def floor_ratio(h_ctrl: dict) -> float | None:
