@@ -57,12 +57,21 @@ def test_an_id0_current_frame_is_kept(monkeypatch):
     assert prof.sampling.current_reference == "id0"
     prep = prepare([dataclasses.replace(rec, theta_e=None, omega_e=None)], prof)
     assert abs(_offset_deg(prep[0].sig, rec.theta_e)) < 0.05
-    turned = []
-    monkeypatch.setattr(E, "onto_rotor", lambda preps, *a, **kw: turned.append(preps) or preps)
-    _explained(ID0_NO_ENCODER, None)
-    assert turned == []
-    _explained(MTPA_NO_ENCODER, None)  # and a drive under MTPA is turned
-    assert len(turned) == 1
+
+    class Reached(Exception):
+        """explain got to this step (the frames are settled before the control's refit)."""
+
+    def stop_at(step):
+        def raise_(*a, **kw):
+            raise Reached(step)
+        return raise_
+
+    monkeypatch.setattr(E, "onto_rotor", stop_at("turned"))
+    monkeypatch.setattr(E, "control", stop_at("refitted"))
+    for seed, first in ((ID0_NO_ENCODER, "refitted"), (MTPA_NO_ENCODER, "turned")):  # MTPA: turned
+        with pytest.raises(Reached) as reached:
+            _explained(seed, None)
+        assert reached.value.args == (first,), seed
 
 
 SPEED_STEP_NO_ENCODER = 20183  #: i_d = 0, no encoder, a load machine stepping the speed by 9 % in every record

@@ -523,7 +523,8 @@ def _too_small(row: dict) -> bool:
 
 
 def floor_ratio(h_ctrl: dict) -> float | None:
-    """The control's held-out NRMSE over its noise floor, or None."""
+    """The control's held-out error beyond the noise floor (its NRMSE, :func:`heldout`) over that
+    floor, or None."""
     floor = (h_ctrl.get("noise_floor") or {}).get("total")
     total = _total(h_ctrl)
     return total / floor if floor and total is not None else None
@@ -532,9 +533,9 @@ def floor_ratio(h_ctrl: dict) -> float | None:
 def too_small_note(share: float, ratio: float | None) -> str:
     """Why a candidate whose test passes is not claimed: its ``share`` of the control's held-out
     error is below ``MIN_EXPLAINED`` (a real but minor part; ``ratio``: the control over its noise
-    floor, where what is left is larger than any candidate explains)."""
-    left = (f"; the control is {ratio:.3g} times its noise floor, so a larger error that no candidate explains is "
-            f"left" if ratio is not None and ratio > 2.0 else "")
+    floor, :func:`floor_ratio`, where what is left is larger than any candidate explains)."""
+    left = (f"; the control's error beyond the noise is {ratio:.3g} times the noise floor, so a larger error that no "
+            f"candidate explains is left" if ratio is not None and ratio > 2.0 else "")
     return (f"not claimed: its test passes, but it explains {share:.1%} of the control's held-out error, below the "
             f"{MIN_EXPLAINED:.0%} a claim needs{left}")
 
