@@ -5,9 +5,9 @@
  * agent/kernels.py check the shapes. It is built with -ffp-contract=off so that no multiply-add
  * is fused on targets with FMA: the results are the same on every target. The free-run simulation
  * follows its Python reference operation by operation (same order, no reassociation) and matches
- * it bit for bit (ltv_residuals runs the same recursion); block_rows and ring_sums replace numpy expressions (tests/test_kernels.py compares
- * them); the PLL replaces libm's per-sample cos, sin, hypot and atan2 by a rotating phasor
- * and series, within 1e-12 rad of the libm loop (tests/test_kernels.py).
+ * it bit for bit (ltv_residuals runs the same recursion); block_rows replaces numpy expressions, its
+ * hop sums included (tests/test_kernels.py compares them); the PLL replaces libm's per-sample cos,
+ * sin, hypot and atan2 by a rotating phasor and series, within 1e-12 rad of the libm loop (tests/test_kernels.py).
  */
 
 #include <float.h>
@@ -18,17 +18,23 @@
 
 /* The interface's version (agent/kernels.py refuses a library built from another one). 2: the
  * PLL's state of 9 and its cos/sin output; 3: block_rows, ring_sums and ltv_residuals; 4: the
- * rows without the input power (ring_sums takes it from the phases); 5: block_rows's row strides. */
-int kernels_abi(void) { return 5; }
+ * rows without the input power (ring_sums takes it from the phases); 5: block_rows's row strides;
+ * 6: pll_series, ltv_residuals's current row stride, block_rows's hop sums in place of ring_sums. */
+int kernels_abi(void) { return 6; }
 
-/* cos and sin of a small angle x (|x| <= SMALL_ANGLE) by their Taylor series, short where |x| <=
- * 1/16 (to x^8 / x^9) and to x^14 / x^13 above: the first term left out is below 1e-19 there,
- * far under an ulp of the result. Estrin's scheme (pairs of terms, powers of x^2 in parallel):
+/* cos and sin of a small angle x (|x| <= SMALL_ANGLE) by their Taylor series: to x^4 / x^5 where
+ * |x| <= 2^-10 (the loop's turn by its phase error, in lock), to x^8 / x^9 where |x| <= 1/16, to
+ * x^14 / x^13 above: the first term left out is below 1e-19 there, far under an ulp of the result. Estrin's scheme (pairs of terms, powers of x^2 in parallel):
  * the loop's latency runs through here every sample. */
 #define SMALL_ANGLE 0.4
 static inline void small_cos_sin(double x, double *c, double *s)
 {
     const double x2 = x * x, x4 = x2 * x2, x8 = x4 * x4;
+    if (fabs(x) <= 0x1p-10) {
+        *c = (1.0 - x2 * (1.0 / 2)) + x4 * (1.0 / 24);
+        *s = x * ((1.0 - x2 * (1.0 / 6)) + x4 * (1.0 / 120));
+        return;
+    }
     if (fabs(x) <= 0.0625) {
         *c = (1.0 - x2 * (1.0 / 2)) + x4 * ((1.0 / 24 - x2 * (1.0 / 720)) + x4 * (1.0 / 40320));
         *s = x * ((1.0 - x2 * (1.0 / 6)) + x4 * ((1.0 / 120 - x2 * (1.0 / 5040)) + x4 * (1.0 / 362880)));
@@ -41,12 +47,14 @@ static inline void small_cos_sin(double x, double *c, double *s)
 }
 
 /* The phase error atan2(-d, q). Near lock (q > 0, |d| <= q / 8, |e| < 0.125) by the odd series of
- * atan(t), t = -d / q: to t^9 where |t| <= 1/64, to t^15 above; the first term left out is under
+ * atan(t), t = -d / q: to t^5 where |t| <= 2^-10, to t^9 where |t| <= 1/64, to t^15 above; the first term left out is under
  * an ulp of e (Estrin's scheme, as above). Else libm's atan2. */
 static inline double phase_error(double d, double q)
 {
     if (q > 0.0 && fabs(d) <= 0.125 * q) {
         const double t = -d / q, t2 = t * t, t4 = t2 * t2, t8 = t4 * t4;
+        if (fabs(t) <= 0x1p-10)
+            return t * ((1.0 - t2 * (1.0 / 3)) + t4 * (1.0 / 5));
         if (fabs(t) <= 0.015625)
             return t * ((1.0 - t2 * (1.0 / 3)) + t4 * ((1.0 / 5 - t2 * (1.0 / 7)) + t4 * (1.0 / 9)));
         return t * (((1.0 - t2 * (1.0 / 3)) + t4 * (1.0 / 5 - t2 * (1.0 / 7)))
@@ -126,6 +134,14 @@ static inline __attribute__((always_inline)) void pll_step(struct pll *p, double
         const double tapered = p->wn * p->taper;
         p->wn = p->wn_trk > tapered ? p->wn_trk : tapered; /* Python's max(tapered, wn_trk) */
     }
+    /* The phasor's next value is (c, s) turned by step = Ts (omega + 2 zeta wn e), omega after this
+     * sample's update: by the part known before e (Ts omega_before, turned while e is worked out)
+     * and then by the part e adds, Ts (wn^2 Ts + 2 zeta wn) e; the loop's latency runs through the
+     * second turn only. */
+    const double ahead = p->ts * p->om, by_e = p->ts * (p->wn * p->wn * p->ts + 2.0 * p->zeta * p->wn) * e;
+    double ca, sa;
+    small_cos_sin(ahead, &ca, &sa);
+    const double c_ahead = c * ca - s * sa, s_ahead = s * ca + c * sa;
     p->om += p->wn * p->wn * p->ts * e;
     out[0] = p->th;
     out[1] = p->om;
@@ -147,15 +163,15 @@ static inline __attribute__((always_inline)) void pll_step(struct pll *p, double
     if (turns < 0.0 || turns >= 1.0) /* floor(turns) is 0 in between: no libm call */
         p->th -= 2.0 * PI * floor(turns);
     p->steps += 1.0;
-    if (p->steps >= RESYNC || !(fabs(step) <= SMALL_ANGLE)) {
+    if (p->steps >= RESYNC || !(fabs(ahead) <= SMALL_ANGLE && fabs(by_e) <= SMALL_ANGLE)) {
         p->steps = 0.0;
         p->c = cos(p->th);
         p->s = sin(p->th);
     } else {
         double cr, sr;
-        small_cos_sin(step, &cr, &sr);
-        p->c = c * cr - s * sr;
-        p->s = s * cr + c * sr;
+        small_cos_sin(by_e, &cr, &sr);
+        p->c = c_ahead * cr - s_ahead * sr;
+        p->s = s_ahead * cr + c_ahead * sr;
     }
 }
 
@@ -179,6 +195,18 @@ void pll_run(const double *x_abc, ptrdiff_t n, const double *clarke, const doubl
             cs[j * n + k] = out[2 + j];
     }
     pll_save(&p, state);
+}
+
+/* The PLL's series at n points (tests/test_kernels.py holds them to libm): out (4, n) = cos and sin
+ * of x by small_cos_sin (|x| <= SMALL_ANGLE), phase_error(d, q), and 1 where phase_error took its
+ * series, else 0. */
+void pll_series(const double *x, const double *d, const double *q, ptrdiff_t n, double *out)
+{
+    for (ptrdiff_t k = 0; k < n; ++k) {
+        small_cos_sin(x[k], &out[k], &out[n + k]);
+        out[2 * n + k] = phase_error(d[k], q[k]);
+        out[3 * n + k] = q[k] > 0.0 && fabs(d[k]) <= 0.125 * q[k];
+    }
 }
 
 /* Free-run simulation x(k+1) = (A0 + omega(k) A1) x(k) + u(k) (agent/model.py), x(0) = x0.
@@ -233,12 +261,21 @@ static inline double finite_or_max(double x)
  *            of the pipeline's ring): va vb vc ia ib ic omega i_d i_q v_d v_q
  *            (kernels.ROWS): the phases, the Park rotations of the currents at the angle and
  *            of the voltages at the mid angle (the input power v.i is summed from the phases).
+ * sums (16,), read and updated in place when not NULL: a hop's sums carried across blocks, added to
+ *            in sample order (the same however the stream is cut, the angle's to the rounding of
+ *            its unwrapping, which each block does from theta_last), for the operating point,
+ *            the running check and the torque regression (pipeline.HopSums): ref (the angle they
+ *            are taken about, rad, not changed), then the sums of the input power v.i (W, from the
+ *            phases), omega, i_q, i_d i_q, i_d^2 + i_q^2; the minima of i_d, i_q and their maxima
+ *            (NaN once a sample is NaN); the sums of dth = angle - ref, dth^2, dth omega,
+ *            dth power, omega^2, omega power.
  * Returns 1 when a sample is NaN or saturated, else 0.
  */
+#define N_SUMS 16
 int block_rows(const double *i_abc, ptrdiff_t i_stride, const double *v_abc, ptrdiff_t v_stride, ptrdiff_t n,
                const double *clarke, const double *limits, double theta_last, const double *angle,
                const double *pll_par, double *pll_state, double *unwrapped, void *rows, ptrdiff_t rows_stride,
-               int f32)
+               int f32, double *sums)
 {
     const double c_aa = clarke[0], c_ab = clarke[1], c_ac = clarke[2];
     const double c_ba = clarke[3], c_bb = clarke[4], c_bc = clarke[5];
@@ -251,6 +288,10 @@ int block_rows(const double *i_abc, ptrdiff_t i_stride, const double *v_abc, ptr
     const ptrdiff_t rs = rows_stride;
     double prev = theta_last, turns = 0.0;
     int bad = 0;
+    double sm[N_SUMS] = {0.0};
+    if (sums != NULL)
+        for (int j = 0; j < N_SUMS; ++j)
+            sm[j] = sums[j];
 
     for (ptrdiff_t k = 0; k < n; ++k) {
         const double ia = i_abc[k], ib = i_abc[i_stride + k], ic = i_abc[2 * i_stride + k];
@@ -265,7 +306,8 @@ int block_rows(const double *i_abc, ptrdiff_t i_stride, const double *v_abc, ptr
         if (!(fabs(step) < PI))
             turns += -two_pi * rint(step / two_pi);
         prev = a[0];
-        unwrapped[k] = a[0] + turns;
+        const double th = a[0] + turns;
+        unwrapped[k] = th;
         if (!(fabs(ia) < i_lim && fabs(ib) < i_lim && fabs(ic) < i_lim && fabs(va) < v_lim
               && fabs(vb) < v_lim && fabs(vc) < v_lim))
             bad = 1;
@@ -277,6 +319,24 @@ int block_rows(const double *i_abc, ptrdiff_t i_stride, const double *v_abc, ptr
     (r[k] = va, r[rs + k] = vb, r[2 * rs + k] = vc, r[3 * rs + k] = ia, r[4 * rs + k] = ib,                \
      r[5 * rs + k] = ic, r[6 * rs + k] = a[1], r[7 * rs + k] = i_d, r[8 * rs + k] = i_q, r[9 * rs + k] = v_d, \
      r[10 * rs + k] = v_q)
+        if (sums != NULL) { /* in the loop's spare cycles: its latency runs through the PLL */
+            const double pw = va * ia + vb * ib + vc * ic, om = a[1], dth = th - sm[0];
+            sm[1] += pw;
+            sm[2] += om;
+            sm[3] += i_q;
+            sm[4] += i_d * i_q;
+            sm[5] += i_d * i_d + i_q * i_q;
+            sm[6] = i_d < sm[6] || isnan(i_d) ? i_d : sm[6]; /* a NaN stays */
+            sm[7] = i_q < sm[7] || isnan(i_q) ? i_q : sm[7];
+            sm[8] = i_d > sm[8] || isnan(i_d) ? i_d : sm[8];
+            sm[9] = i_q > sm[9] || isnan(i_q) ? i_q : sm[9];
+            sm[10] += dth;
+            sm[11] += dth * dth;
+            sm[12] += dth * om;
+            sm[13] += dth * pw;
+            sm[14] += om * om;
+            sm[15] += om * pw;
+        }
         if (f32)
             STORE_ROWS(r32); /* rounded to float */
         else
@@ -285,6 +345,9 @@ int block_rows(const double *i_abc, ptrdiff_t i_stride, const double *v_abc, ptr
     }
     if (angle == NULL)
         pll_save(&p, pll_state);
+    if (sums != NULL)
+        for (int j = 1; j < N_SUMS; ++j)
+            sums[j] = sm[j];
     return bad;
 }
 
@@ -294,7 +357,8 @@ int block_rows(const double *i_abc, ptrdiff_t i_stride, const double *v_abc, ptr
  * samples (agent/pipeline.py's open windows), each from its own state:
  * r_j(k) = (i_d(k) - x_d(k)) cos theta(k) - (i_q(k) - x_q(k)) sin theta(k).
  *
- * a0, a1 (2, 2); omega (n,); u (2, n); i_dq (2, n): the measured currents; theta (n,): the angle
+ * a0, a1 (2, 2); omega (n,); u (2, n); i_dq (2, n): the measured currents, their rows i_stride elements
+ * apart (a span of a longer read-out needs no copy); theta (n,): the angle
  * (rad, unwrapped). x (2, m), read and updated in place: each run's state at the first sample, then
  * after the last (the step from sample n - 1), so that a stream cut into blocks continues exactly.
  * r (m, n), written. m <= LTV_RUNS. The recursion is simulate_ltv's, operation by operation (the same x); cos
@@ -302,11 +366,11 @@ int block_rows(const double *i_abc, ptrdiff_t i_stride, const double *v_abc, ptr
  * within 1e-14 of libm's.
  */
 void ltv_residuals(const double *a0, const double *a1, const double *omega, const double *u, const double *i_dq,
-                   const double *theta, ptrdiff_t n, ptrdiff_t m, double *x, double *r)
+                   ptrdiff_t i_stride, const double *theta, ptrdiff_t n, ptrdiff_t m, double *x, double *r)
 {
     const double a0_dd = a0[0], a0_dq = a0[1], a0_qd = a0[2], a0_qq = a0[3];
     const double a1_dd = a1[0], a1_dq = a1[1], a1_qd = a1[2], a1_qq = a1[3];
-    const double *ud = u, *uq = u + n, *id = i_dq, *iq = i_dq + n;
+    const double *ud = u, *uq = u + n, *id = i_dq, *iq = i_dq + i_stride;
     double d[LTV_RUNS], q[LTV_RUNS], c = 0.0, s = 0.0;
     if (m > LTV_RUNS)
         return; /* the wrapper refuses it */
@@ -339,65 +403,4 @@ void ltv_residuals(const double *a0, const double *a1, const double *omega, cons
         x[j] = d[j];
         x[m + j] = q[j];
     }
-}
-
-/* Sums over n samples of the signal ring from column start (wrapping at n_ring), for the span's
- * operating point, running check and torque regression (pipeline.HopSums).
- *
- * ring (11, n_ring) (float when f32, else double): the rows of block_rows. theta_ring (n_ring,).
- * out (15,), written: power (v.i of the phases as stored), omega, i_q, i_d i_q, i_d^2 + i_q^2 (sums), the minima of i_d, i_q, their
- *            maxima (NaN when a sample is NaN), the angle's mean, then the sums of dth^2,
- *            dth omega, dth power, omega^2, omega power, dth being the angle less its mean.
- */
-void ring_sums(const void *ring, int f32, ptrdiff_t n_ring, const double *theta_ring, ptrdiff_t start,
-               ptrdiff_t n, double *out)
-{
-    /* the n columns from start, wrapping: [start, start + first), then [0, n - first) */
-    const ptrdiff_t first = n < n_ring - start ? n : n_ring - start;
-    const ptrdiff_t seg_lo[2] = {start, 0}, seg_hi[2] = {start + first, n - first};
-    double mean = 0.0;
-    for (int seg = 0; seg < 2; ++seg)
-        for (ptrdiff_t j = seg_lo[seg]; j < seg_hi[seg]; ++j)
-            mean += theta_ring[j] - theta_ring[start];
-    mean = theta_ring[start] + mean / (double)n;
-    double p = 0.0, w = 0.0, iq = 0.0, idq = 0.0, isq = 0.0, tt = 0.0, tw = 0.0, tp = 0.0, ww = 0.0, wp = 0.0;
-    double lo_d = INFINITY, lo_q = INFINITY, hi_d = -INFINITY, hi_q = -INFINITY;
-    int nan_d = 0, nan_q = 0;
-    /* one loop per storage type (no test of it per sample) */
-#define SUM_RING(r)                                                                                  \
-    for (int seg = 0; seg < 2; ++seg)                                                                \
-        for (ptrdiff_t j = seg_lo[seg]; j < seg_hi[seg]; ++j) {                                      \
-            const double om = r[6 * n_ring + j], i_d = r[7 * n_ring + j], i_q = r[8 * n_ring + j];   \
-            const double pw = (double)r[j] * r[3 * n_ring + j] + (double)r[n_ring + j] * r[4 * n_ring + j] \
-                              + (double)r[2 * n_ring + j] * r[5 * n_ring + j];                       \
-            const double dth = theta_ring[j] - mean;                                                 \
-            p += pw;                                                                                 \
-            w += om;                                                                                 \
-            iq += i_q;                                                                               \
-            idq += i_d * i_q;                                                                        \
-            isq += i_d * i_d + i_q * i_q;                                                            \
-            tt += dth * dth;                                                                         \
-            tw += dth * om;                                                                          \
-            tp += dth * pw;                                                                          \
-            ww += om * om;                                                                           \
-            wp += om * pw;                                                                           \
-            nan_d |= isnan(i_d);                                                                     \
-            nan_q |= isnan(i_q);                                                                     \
-            lo_d = i_d < lo_d ? i_d : lo_d;                                                          \
-            hi_d = i_d > hi_d ? i_d : hi_d;                                                          \
-            lo_q = i_q < lo_q ? i_q : lo_q;                                                          \
-            hi_q = i_q > hi_q ? i_q : hi_q;                                                          \
-        }
-    if (f32) {
-        const float *r32 = (const float *)ring;
-        SUM_RING(r32)
-    } else {
-        const double *r64 = (const double *)ring;
-        SUM_RING(r64)
-    }
-#undef SUM_RING
-    const double sums[15] = {p, w, iq, idq, isq, nan_d ? NAN : lo_d, nan_q ? NAN : lo_q,
-                             nan_d ? NAN : hi_d, nan_q ? NAN : hi_q, mean, tt, tw, tp, ww, wp};
-    for (int j = 0; j < 15; ++j)
-        out[j] = sums[j];
 }

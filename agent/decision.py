@@ -66,6 +66,21 @@ class Diagnosis:
                 "evidence": self.evidence, "verdict": self.verdict}
 
 
+def _line_magnitudes(baseline: Baseline, freqs: np.ndarray, amp: np.ndarray, fe_hz: float):
+    """Every fault line (family, k, Hz) within the spectrum, its magnitude in the window where it is
+    lowest, the bin it was read at and its nearest bin; None when no line lies within it."""
+    lines = [(family, line["k"], line["freq_hz"])
+             for family, items in fault_frequencies(baseline.profile, fe_hz, K_MAX).items()
+             for line in items if line["freq_hz"] <= freqs[-1]]
+    if not lines:
+        return None
+    targets = np.array([f for _, _, f in lines])
+    idx, _, mag = peak_near(freqs, np.atleast_2d(amp), targets, baseline.thresholds.search_bins)  # (windows, lines)
+    weakest = np.argmin(mag, axis=0)  # the window where each line is lowest
+    cols = np.arange(len(lines))
+    return lines, mag[weakest, cols], idx[weakest, cols], nearest_bin(freqs, targets)
+
+
 def spectrum_peaks(baseline: Baseline, freqs: np.ndarray, amp: np.ndarray, fe_hz: float) -> list[dict]:
     """Every fault line (family, k, both sidebands) with its magnitude, thresholds and level.
 
@@ -73,19 +88,15 @@ def spectrum_peaks(baseline: Baseline, freqs: np.ndarray, amp: np.ndarray, fe_hz
     line's level is the one it held in *every* window (persistence) and its magnitude the smallest.
     A line's magnitude is the largest bin within ``search_bins`` of its frequency (``peak_near``).
     """
-    th = baseline.thresholds
-    amp = np.atleast_2d(amp)
-    lines = [(family, line["k"], line["freq_hz"])
-             for family, items in fault_frequencies(baseline.profile, fe_hz, K_MAX).items()
-             for line in items if line["freq_hz"] <= freqs[-1]]
-    if not lines:
+    return _peaks_of(baseline, freqs, _line_magnitudes(baseline, freqs, amp, fe_hz))
+
+
+def _peaks_of(baseline: Baseline, freqs: np.ndarray, lines) -> list[dict]:
+    """:func:`spectrum_peaks` from the lines :func:`_line_magnitudes` read."""
+    if lines is None:
         return []
-    targets = np.array([f for _, _, f in lines])
-    idx, _, mag = peak_near(freqs, amp, targets, th.search_bins)  # (windows, lines)
-    weakest = np.argmin(mag, axis=0)  # the window where each line is lowest
-    cols = np.arange(len(lines))
-    mag_min, bin_at = mag[weakest, cols], idx[weakest, cols]
-    centre = nearest_bin(freqs, targets)
+    lines, mag_min, bin_at, centre = lines
+    th = baseline.thresholds
     th2, th3 = th.th2[centre], th.th3[centre]
     peaks = []
     for j, (family, k, f) in enumerate(lines):
@@ -226,18 +237,15 @@ def _resolution(freqs: np.ndarray) -> float:
     return float(freqs[1] - freqs[0]) if freqs.size > 1 else 0.0
 
 
-def _spectrum_levels(baseline: Baseline, freqs: np.ndarray, amp: np.ndarray, fe_hz: float):
-    """Every fault line (:func:`spectrum_peaks`), the spectrum state and the flagged lines
-    (:func:`spectrum_decision` by the baseline's rule)."""
-    peaks = spectrum_peaks(baseline, freqs, amp, fe_hz)
-    return peaks, *spectrum_decision(peaks, baseline.settings.get("spectrum_rule", "pair"))
-
-
 def listed_peaks(baseline: Baseline, freqs: np.ndarray, amp: np.ndarray, fe_hz: float) -> list[dict]:
     """The flagged lines as :func:`decide` lists them (its ``peaks``), without the rest of its
     diagnosis: the family verdict that orders them is only worked out when a line is flagged (the
     streaming pipeline's display, every hop)."""
-    peaks, _, flagged = _spectrum_levels(baseline, freqs, amp, fe_hz)
+    lines = _line_magnitudes(baseline, freqs, amp, fe_hz)
+    if lines is None or not np.any(lines[1] > baseline.thresholds.th2[lines[3]]):
+        return []  # no line above its caution threshold: nothing flagged, by either rule
+    peaks = _peaks_of(baseline, freqs, lines)
+    flagged = spectrum_decision(peaks, baseline.settings.get("spectrum_rule", "pair"))[1]
     if not flagged:
         return []
     shared = shared_pairs(baseline.profile, fe_hz, _resolution(freqs))
@@ -247,7 +255,8 @@ def listed_peaks(baseline: Baseline, freqs: np.ndarray, amp: np.ndarray, fe_hz: 
 def decide(baseline: Baseline, freqs: np.ndarray, amp: np.ndarray, point: np.ndarray, op: dict,
            source: str = "") -> Diagnosis:
     """Table 4 from the residual spectra of the windows (n_windows, bins) and the cluster point."""
-    peaks, spectrum_state, flagged = _spectrum_levels(baseline, freqs, amp, op["fe_hz"])
+    peaks = spectrum_peaks(baseline, freqs, amp, op["fe_hz"])
+    spectrum_state, flagged = spectrum_decision(peaks, baseline.settings.get("spectrum_rule", "pair"))
     shared = shared_pairs(baseline.profile, op["fe_hz"], _resolution(freqs))
     verdict = family_verdict(peaks, shared)
     d2 = baseline.cluster.distance2(point)

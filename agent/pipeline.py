@@ -50,7 +50,7 @@ from agent.sanity import not_running_of
 from agent.library import ModelLibrary
 from agent.model import BASE_TERMS, Signals
 from agent.pll import PLL
-from agent.kernels import ROWS, block_rows, ltv_residuals, ring_sums
+from agent.kernels import ROWS, block_rows, ltv_residuals, new_sums
 from agent.spectrum import amplitude_spectrum
 from agent.training import ACCEPT_FLAG, fault_reading
 from agent.profile import DriveProfile
@@ -114,11 +114,15 @@ class HopSums:
     omega_power: float
 
 
-def hop_sums(ring: np.ndarray, theta: np.ndarray, start: int, n: int) -> HopSums:
-    """The :class:`HopSums` of ``n`` samples of the signal ring (rows :data:`ROWS`, angle
-    ``theta``) from column ``start`` (:func:`agent.kernels.ring_sums`)."""
-    s = ring_sums(ring, theta, start, n).tolist()
-    return HopSums(n, *s[:5], tuple(s[5:7]), tuple(s[7:9]), *s[9:])
+def hop_sums(sums: np.ndarray, n: int) -> HopSums:
+    """The :class:`HopSums` of a hop of ``n`` samples from the sums :func:`agent.kernels.block_rows`
+    carried over it (:data:`agent.kernels.SUMS`, about their angle ``ref``): the angle's mean, and
+    its moments about it (sum of (theta - mean)^2 = sum dth^2 - (sum dth)^2 / n, and alike)."""
+    ref, power, omega, i_q, i_dq, i_sq, d_lo, q_lo, d_hi, q_hi, dth, dth_sq, dth_omega, dth_power, omega_sq, \
+        omega_power = sums.tolist()
+    shift = dth / n  # the mean less ref
+    return HopSums(n, power, omega, i_q, i_dq, i_sq, (d_lo, q_lo), (d_hi, q_hi), ref + shift,
+                   dth_sq - shift * dth, dth_omega - shift * omega, dth_power - shift * power, omega_sq, omega_power)
 
 
 class _OpenWindows:
@@ -238,6 +242,7 @@ class DriveMonitor:
         self._q_info: dict[int, tuple] = {}  # hop end sample -> (model, q-axis X^T X, X^T y)
         self._newest: tuple[int, Signals] | None = None  # (end sample, signals) of the newest hop (_hop_signals)
         self._hop_sums: dict[int, HopSums] = {}  # hop end sample -> its sums (the span's hops)
+        self._sums = new_sums(0.0)  # the open hop's, as block_rows adds to them
         self.pll.reset()
         self.last_input = time.monotonic()
         self.alarms.new_stream()
@@ -252,50 +257,44 @@ class DriveMonitor:
         self._next_sample = block.first_sample + block.n
         self.last_input = time.monotonic()
         self._encoder = block.theta_e is not None
-        # one C pass: the ring's rows (Clarke, Park), the saturation check and the angle
-        # unwrapped across blocks (Signals wants it so); kept below 2^20 rad by shifting the whole
-        # buffer by whole turns, which changes no cosine and no difference. A block that neither
-        # completes a hop before its end nor wraps the ring is written straight into the ring; else
-        # it is pushed hop by hop (a hop is assessed before the next overwrites the span's oldest).
-        w = self._write
-        direct = block.n <= min(self.n_hop - self._since_hop, self.n_span - w)
-        if direct:
-            data, theta = self._ring[:, w:w + block.n], self._theta[w:w + block.n]
-        else:
-            data, theta = np.empty((len(ROWS), block.n), dtype=self._ring.dtype), np.empty(block.n)
+        # one C pass per stretch of the block up to the next hop's end or the ring's end: the ring's
+        # rows (Clarke, Park) written in place, the saturation check, the angle unwrapped across
+        # blocks (Signals wants it so) and the hop's sums; the angle is kept below 2^20 rad by
+        # shifting the whole buffer by whole turns, which changes no cosine and no difference. A
+        # hop is assessed before the next overwrites the span's oldest samples.
         if block.theta_e is not None:
             angle = block.theta_e
             omega = block.omega_e if block.omega_e is not None else np.gradient(np.unwrap(angle)) * self.rate
             angle = np.concatenate(([angle], [omega], cos_sin32(angle), cos_sin32(angle + 0.5 * omega / self.rate)))
-            _, bad, _ = block_rows(block.i_abc, block.v_abc, CLARKE[:2], self._limits, self._theta_last, data,
-                                   angle=angle, unwrapped=theta)
-        else:
-            if self._samples == 0:  # a new stream: the PLL starts where it starts, as offline (record_signals)
-                self.pll.reset(block.i_abc)
-            # the PLL's loop writes the rows (its angle's cos and sin and the voltages' mid angle's at hand)
-            _, bad = self.pll.process_rows(block.i_abc, block.v_abc, self._limits, self._theta_last, data, theta)
-        if bad:
-            self._bad_until = self._samples + block.n + self.n_span  # spans containing this block are bad
-        if theta[-1] > _THETA_LIMIT:
-            turns = 2 * np.pi * np.floor(theta[0] / (2 * np.pi))
-            self._theta -= turns  # with the block when it is written there
-            if not direct:
-                theta -= turns
-            self._hop_sums = {k: replace(h, theta_mean=h.theta_mean - turns) for k, h in self._hop_sums.items()}
-        self._theta_last = theta[-1]
+        elif self._samples == 0:  # a new stream: the PLL starts where it starts, as offline (record_signals)
+            self.pll.reset(block.i_abc)
         out, pos = [], 0
         while pos < block.n:
-            take = min(block.n - pos, self.n_hop - self._since_hop)
-            if direct:
-                self._advance(take)
-            else:
-                self._push(data[:, pos:pos + take], theta[pos:pos + take])
+            w = self._write
+            take = min(block.n - pos, self.n_hop - self._since_hop, self.n_span - w)
+            part = slice(pos, pos + take)
+            rows, theta = self._ring[:, w:w + take], self._theta[w:w + take]
+            if block.theta_e is not None:
+                _, bad, _ = block_rows(block.i_abc[:, part], block.v_abc[:, part], CLARKE[:2], self._limits,
+                                       self._theta_last, rows, angle=angle[:, part], unwrapped=theta, sums=self._sums)
+            else:  # the PLL's loop writes the rows (its angle's cos and sin and the voltages' mid angle's at hand)
+                _, bad = self.pll.process_rows(block.i_abc[:, part], block.v_abc[:, part], self._limits,
+                                               self._theta_last, rows, theta, self._sums)
+            if bad:
+                self._bad_until = self._samples + take + self.n_span  # spans containing these samples are bad
+            if theta[-1] > _THETA_LIMIT:
+                turns = 2 * np.pi * np.floor(theta[0] / (2 * np.pi))
+                self._theta -= turns
+                self._sums[0] -= turns
+                self._hop_sums = {k: replace(h, theta_mean=h.theta_mean - turns) for k, h in self._hop_sums.items()}
+            self._theta_last = theta[-1]
+            self._advance(take)
             pos += take
             self._since_hop += take
             if self._since_hop == self.n_hop:
                 self._since_hop = 0
-                self._hop_sums[self._samples] = hop_sums(self._ring, self._theta, (self._write - self.n_hop) % self.n_span,
-                                                         self.n_hop)
+                self._hop_sums[self._samples] = hop_sums(self._sums, self.n_hop)
+                self._sums = new_sums(self._theta_last)
                 for old in [k for k in self._hop_sums if k <= self._samples - self.n_span]:
                     del self._hop_sums[old]
                 status = self._hop()
@@ -303,15 +302,6 @@ class DriveMonitor:
                 if status is not None:
                     out.append(status)
         return out
-
-    def _push(self, chunk: np.ndarray, theta: np.ndarray) -> None:
-        n = chunk.shape[1]  # <= n_hop <= n_span
-        first = min(n, self.n_span - self._write)
-        self._ring[:, self._write:self._write + first] = chunk[:, :first]
-        self._theta[self._write:self._write + first] = theta[:first]
-        self._ring[:, :n - first] = chunk[:, first:]
-        self._theta[:n - first] = theta[first:]
-        self._advance(n)
 
     def _advance(self, n: int) -> None:
         """Count ``n`` samples written into the ring at its write position."""

@@ -113,14 +113,15 @@ class PLL:
         return (theta, omega, cs) if cos_sin else (theta, omega)
 
     def process_rows(self, i_abc, v_abc, limits, theta_last: float, rows: np.ndarray,
-                     unwrapped: np.ndarray | None = None) -> tuple[np.ndarray, bool]:
+                     unwrapped: np.ndarray | None = None, sums: np.ndarray | None = None) -> tuple[np.ndarray, bool]:
         """Track a block of currents ``i_abc`` ``(3, N)`` (non-finite samples taken as
         :func:`numpy.nan_to_num` makes them) and write, in the same pass, the streaming pipeline's
         signal rows from it and ``v_abc`` (:func:`agent.kernels.block_rows`: ``rows`` ``(11, N)``;
         ``limits`` = max |i|, |v|). Returns ``theta_e`` unwrapped from ``theta_last`` (rad; written
-        into ``unwrapped`` when given) and whether a sample is NaN or saturated."""
+        into ``unwrapped`` when given) and whether a sample is NaN or saturated; adds to the hop
+        sums ``sums`` when given."""
         theta, bad, self._state = block_rows(i_abc, v_abc, self._clarke, limits, theta_last, rows,
-                                             pll=(self._par, self._state), unwrapped=unwrapped)
+                                             pll=(self._par, self._state), unwrapped=unwrapped, sums=sums)
         return theta, bad
 
 

@@ -86,9 +86,8 @@ def peak_near(freqs, amplitude, f_hz, half_width: int = 1):
     centre = nearest_bin(freqs, targets.ravel(), half_width)
     around = np.clip(centre[:, None] + np.arange(-half_width, half_width + 1), 0, freqs.size - 1)
     near = amplitude[..., around]  # (..., lines, search)
-    best = np.argmax(near, axis=-1)
-    mag = np.take_along_axis(near, best[..., None], axis=-1)[..., 0]
-    idx = np.take_along_axis(np.broadcast_to(around, near.shape), best[..., None], axis=-1)[..., 0]
+    mag = near.max(axis=-1)
+    idx = around[np.arange(centre.size), near.argmax(axis=-1)]
     shape = amplitude.shape[:-1] + np.shape(f_hz)
     idx, mag = idx.reshape(shape), mag.reshape(shape)
     if not shape:

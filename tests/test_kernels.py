@@ -1,6 +1,6 @@
 """agent.kernels (the C kernels through ctypes) against literal Python transcriptions written here.
 
-The pipeline's per-block pass (block_rows) and its hop sums (ring_sums) are compared with the numpy
+The pipeline's per-block pass (block_rows) and the hop sums it adds up are compared with the numpy
 expressions they replace (np.unwrap, the Clarke matrix and numpy's Park rotation, einsum, sums and
 dot products over float64 copies), to float32 rounding where the rows are float32.
 
@@ -24,7 +24,8 @@ import pytest
 
 from agent import kernels
 from agent.frames import CLARKE, park
-from agent.kernels import block_rows, ltv_residuals, pll_run, ring_sums, simulate_ltv
+from agent.kernels import block_rows, ltv_residuals, new_sums, pll_run, simulate_ltv
+from agent.pipeline import HopSums, hop_sums
 from agent.pll import PLL
 
 FS = 25_000.0
@@ -86,6 +87,24 @@ def assert_pll_matches(got, want, tol_rad=1e-12):
     mid = theta + 0.5 * omega / FS
     for row, exact in zip(cs, (np.cos(theta), np.sin(theta), np.cos(mid), np.sin(mid))):
         np.testing.assert_allclose(row, exact, rtol=0, atol=1e-13)
+
+
+def test_the_pll_series_are_libm_to_an_ulp_in_every_range():
+    """Each series the loop takes instead of libm (cos and sin of a turn, atan of the phase error),
+    on points spread over every range it is taken in, within 3 ulps of numpy's libm values (the
+    phase error's division rounds too): a wrong coefficient in a short range moves the loop's output by far less than the
+    stream tests' 1e-12 rad, so it is held here."""
+    rng = np.random.default_rng(11)
+    x = np.concatenate([np.geomspace(1e-9, 0.4, 4000), -rng.uniform(0, 0.4, 1000), [0.0]])
+    t = np.concatenate([np.geomspace(1e-9, 0.125, 4000), -rng.uniform(0, 0.125, 1000), [0.0]])
+    q = rng.uniform(0.5, 20.0, t.size)
+    cos_x, sin_x, error, took = kernels.pll_series(x, -t * q, q)
+    ulp = lambda v: np.spacing(np.abs(v))  # noqa: E731
+    assert np.all(np.abs(cos_x - np.cos(x)) <= 2 * ulp(np.cos(x)))
+    assert np.all(np.abs(sin_x - np.sin(x)) <= 2 * ulp(np.sin(x)) + 1e-300)
+    want = np.arctan2(t * q, q)
+    assert took.all()
+    assert np.all(np.abs(error - want) <= 3 * ulp(want) + 1e-300)
 
 
 @pytest.mark.parametrize("seed", range(4))
@@ -223,30 +242,57 @@ def test_block_rows_through_the_pll_equals_pll_run_then_numpy(with_nan):
 
 
 def sums_reference(rows, theta):
-    """The hop sums in numpy, over float64 copies (as pipeline.hop_sums took them before); the
-    input power from the stored phases."""
-    i, w = rows[7:9].astype(float), rows[6].astype(float)
-    p = np.einsum("ij,ij->j", rows[0:3].astype(float), rows[3:6].astype(float))
+    """A hop's sums in numpy over float64 rows (as pipeline.HopSums holds them, the angle's moments
+    about its mean); the input power from the phases."""
+    i, w = rows[7:9], rows[6]
+    p = np.einsum("ij,ij->j", rows[0:3], rows[3:6])
     mean = float(np.mean(theta))
     dth = theta - mean
     return np.array([p.sum(), w.sum(), i[1].sum(), i[0] @ i[1], np.einsum("ij,ij->", i, i), *i.min(axis=1),
                      *i.max(axis=1), mean, dth @ dth, dth @ w, dth @ p, w @ w, w @ p])
 
 
-@pytest.mark.parametrize("dtype", [np.float32, np.float64])
-def test_ring_sums_equal_numpy_across_the_wrap(dtype):
+def flat(h: HopSums) -> np.ndarray:
+    return np.array([h.power, h.omega, h.i_q, h.i_dq, h.i_sq, *h.i_min, *h.i_max, h.theta_mean, h.theta_sq,
+                     h.theta_omega, h.theta_power, h.omega_sq, h.omega_power])
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_block_rows_hop_sums_equal_numpy_however_the_stream_is_cut(dtype):
+    """The hop's sums block_rows adds up as it writes the rows (from the samples as they came, not
+    as stored): numpy's over the same samples, and the same however the stream is cut."""
     rng = np.random.default_rng(9)
-    m, start, n = 1000, 700, 600  # wraps after 300 samples
-    ring = (rng.standard_normal((11, m)) * 10 + 5).astype(dtype)
-    theta = 3e5 + np.cumsum(rng.uniform(0.0, 0.05, m))
-    take = (np.arange(n) + start) % m
-    want = sums_reference(ring[:, take], theta[take])
-    np.testing.assert_allclose(ring_sums(ring, theta, start, n), want, rtol=1e-11, atol=1e-9)
-    ring[8, take[10]] = np.nan  # a NaN i_q: its minimum, maximum and sums are NaN, i_d's are not
-    got = ring_sums(ring, theta, start, n)
-    assert np.isnan(got[[2, 3, 4, 6, 8]]).all() and np.isfinite(got[[0, 1, 5, 7, 9]]).all()
-    with pytest.raises(ValueError, match="within"):
-        ring_sums(ring, theta, start, m + 1)
+    n = 3000
+    i_abc, v_abc = three_phase(n, 97.0, 20.0, seed=1), three_phase(n, 97.0, 300.0, seed=2)
+    omega = 2 * np.pi * 97.0 + rng.standard_normal(n)
+    theta = np.angle(np.exp(1j * (np.cumsum(omega) / FS + 0.3)))
+    mid = theta + 0.5 * omega / FS
+    angle = np.vstack((theta, omega, np.cos(theta), np.sin(theta), np.cos(mid), np.sin(mid)))
+    want_rows, unwrapped = rows_reference(i_abc, v_abc, theta, omega, angle[2:], 3e5)
+    sums = new_sums(3e5 - 1.0)
+    block_rows(i_abc, v_abc, CLARKE[:2], [np.inf, np.inf], 3e5, np.empty((11, n), dtype), angle=angle, sums=sums)
+    got, want = flat(hop_sums(sums, n)), sums_reference(want_rows, unwrapped)
+    np.testing.assert_allclose(got[:11], want[:11], rtol=1e-11, atol=1e-9)
+    np.testing.assert_allclose(got[13:], want[13:], rtol=1e-11)
+    # the angle's moments with speed and power, small sums of large terms: to 1e-12 of their scale
+    p = np.einsum("ij,ij->j", want_rows[0:3], want_rows[3:6])
+    for j, x in ((11, want_rows[6]), (12, p)):
+        assert abs(got[j] - want[j]) <= 1e-12 * math.sqrt(want[10] * (x @ x)), j
+    cut = new_sums(3e5 - 1.0)
+    last = 3e5
+    for k in range(0, n, 777):
+        got, _, _ = block_rows(i_abc[:, k:k + 777], v_abc[:, k:k + 777], CLARKE[:2], [np.inf, np.inf], last,
+                               np.empty((11, min(777, n - k)), dtype), angle=angle[:, k:k + 777], sums=cut)
+        last = got[-1]
+    np.testing.assert_array_equal(cut[:10], sums[:10])  # the same bits, but for the angle's sums
+    np.testing.assert_allclose(cut[10:], sums[10:], rtol=1e-11)  # (each block unwraps its own turns)
+    i_abc[1, 321] = np.nan  # a NaN phase: i_d and i_q NaN there, so their minima, maxima and sums
+    nan = new_sums(3e5)
+    block_rows(i_abc, v_abc, CLARKE[:2], [np.inf, np.inf], 3e5, np.empty((11, n), dtype), angle=angle, sums=nan)
+    got = flat(hop_sums(nan, n))
+    assert np.isnan(got[[0, 2, 3, 4, 5, 6, 7, 8]]).all() and np.isfinite(got[[1, 9, 13]]).all()
+    with pytest.raises(ValueError, match="sums"):
+        block_rows(i_abc, v_abc, CLARKE[:2], [np.inf, np.inf], 3e5, np.empty((11, n)), angle=angle, sums=np.zeros(15))
 
 
 def test_ltv_residuals_equal_simulate_ltv_and_numpy_across_cuts():

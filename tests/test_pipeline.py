@@ -19,6 +19,7 @@ import tracemalloc
 import numpy as np
 import pytest
 
+from agent.decision import decide
 from agent.library import ModelLibrary, Schedule
 from agent.modelfile import load_baseline
 from agent.evidence import AlarmConfig, Verdict
@@ -200,6 +201,27 @@ def test_block_size_does_not_change_the_statuses(library):
         for (_, st), (_, r) in zip(out, ref):
             for f in ("fe_hz", "load_pct", "cluster_distance2"):
                 assert math.isclose(getattr(st, f), getattr(r, f), rel_tol=1e-6, abs_tol=1e-9), (size, f)
+
+
+@pytest.mark.parametrize("rule,fault,level", [("pair", "gear_severe_wear", "warning"),
+                                              ("line", "gear_slight_wear", "caution")])
+def test_the_listed_peaks_are_the_decisions_flagged_lines(library, rule, fault, level):
+    """Every hop's displayed lines are exactly the flagged lines of the offline decision on the same
+    spectra, by either spectrum rule: none while healthy (the pipeline's short cut), the same
+    lines in the same order once a fault raises them, at caution or at warning."""
+    base = library.baselines["b80"]
+    base.settings["spectrum_rule"] = rule
+    mon = DriveMonitor("d1", profile(), library, CFG)
+    stream = splice(sim("healthy", 80.0, 10.0, 101), sim(fault, 80.0, 10.0, 101), int(6.0 * RATE))
+    listed = []
+    for blk in blocks_of(stream, BLOCK, 0):
+        for st in mon.process(blk):  # a hop a block at most: the reading is this status's
+            name, reading = mon._reading
+            d = decide(library.baselines[name], base.thresholds.freqs_hz, reading.spectra, reading.point,
+                       reading.operating_point)
+            assert st.peaks == d.peaks
+            listed.append({p["level"] for p in st.peaks})
+    assert not listed[0] and level in set().union(*listed)  # lines at this level were compared
 
 
 def test_persistence_and_hold_work_across_stream_gaps(library):
