@@ -23,16 +23,21 @@
 int kernels_abi(void) { return 6; }
 
 /* cos and sin of a small angle x (|x| <= SMALL_ANGLE) by their Taylor series: to x^4 / x^5 where
- * |x| <= 2^-10 (the loop's turn by its phase error, in lock), to x^8 / x^9 where |x| <= 1/16, to
- * x^14 / x^13 above: the first term left out is below 1e-19 there, far under an ulp of the result. Estrin's scheme (pairs of terms, powers of x^2 in parallel):
+ * |x| <= 2^-10 (the loop's turn by its phase error, in lock), to x^6 / x^7 where |x| <= 1/32, to
+ * x^8 / x^9 where |x| <= 1/16, to x^14 / x^13 above: the first term left out is below 1e-19 there, far under an ulp of the result. Estrin's scheme (pairs of terms, powers of x^2 in parallel):
  * the loop's latency runs through here every sample. */
 #define SMALL_ANGLE 0.4
-static inline void small_cos_sin(double x, double *c, double *s)
+static inline __attribute__((always_inline)) void small_cos_sin(double x, double *c, double *s)
 {
     const double x2 = x * x, x4 = x2 * x2, x8 = x4 * x4;
     if (fabs(x) <= 0x1p-10) {
         *c = (1.0 - x2 * (1.0 / 2)) + x4 * (1.0 / 24);
         *s = x * ((1.0 - x2 * (1.0 / 6)) + x4 * (1.0 / 120));
+        return;
+    }
+    if (fabs(x) <= 0.03125) {
+        *c = (1.0 - x2 * (1.0 / 2)) + x4 * (1.0 / 24 - x2 * (1.0 / 720));
+        *s = x * ((1.0 - x2 * (1.0 / 6)) + x4 * (1.0 / 120 - x2 * (1.0 / 5040)));
         return;
     }
     if (fabs(x) <= 0.0625) {
@@ -86,7 +91,18 @@ static inline double phase_error(double d, double q)
 struct pll {
     double ts, wn_trk, wn_acq, taper, a_ef, thr, thr_off, n_lock, amin2, zeta, c_aa, c_ab, c_ac, c_ba, c_bb, c_bc;
     double th, om, ef, cnt, lck, wn, c, s, steps;
+    double ch, sh; /* cos and sin of the last sample's half turn Ts omega / 2, when half_ok */
+    int half_ok;
 };
+
+/* The half turn Ts omega / 2 of the integrator: its cos and sin in ch, sh where it is small. */
+static inline __attribute__((always_inline)) void half_turn(struct pll *p)
+{
+    const double half = 0.5 * p->ts * p->om;
+    p->half_ok = fabs(half) <= SMALL_ANGLE;
+    if (p->half_ok)
+        small_cos_sin(half, &p->ch, &p->sh);
+}
 
 static struct pll pll_load(const double *clarke, const double *par, const double *state)
 {
@@ -98,6 +114,7 @@ static struct pll pll_load(const double *clarke, const double *par, const double
         p.c = cos(p.th);
         p.s = sin(p.th);
     }
+    half_turn(&p); /* as the sample before worked it out: a stream cut into blocks continues exactly */
     return p;
 }
 
@@ -135,27 +152,25 @@ static inline __attribute__((always_inline)) void pll_step(struct pll *p, double
         p->wn = p->wn_trk > tapered ? p->wn_trk : tapered; /* Python's max(tapered, wn_trk) */
     }
     /* The phasor's next value is (c, s) turned by step = Ts (omega + 2 zeta wn e), omega after this
-     * sample's update: by the part known before e (Ts omega_before, turned while e is worked out)
-     * and then by the part e adds, Ts (wn^2 Ts + 2 zeta wn) e; the loop's latency runs through the
-     * second turn only. */
-    const double ahead = p->ts * p->om, by_e = p->ts * (p->wn * p->wn * p->ts + 2.0 * p->zeta * p->wn) * e;
-    double ca, sa;
-    small_cos_sin(ahead, &ca, &sa);
+     * sample's update: by the part known before e, Ts omega_before (twice the last sample's half
+     * turn: its double angle; turned while e is worked out), then by the part e adds,
+     * Ts (wn^2 Ts + 2 zeta wn) e; the loop's latency runs through the second turn only. */
+    const double by_e = p->ts * (p->wn * p->wn * p->ts + 2.0 * p->zeta * p->wn) * e;
+    const int ahead_ok = p->half_ok;
+    const double ca = p->ch * p->ch - p->sh * p->sh, sa = 2.0 * p->ch * p->sh;
     const double c_ahead = c * ca - s * sa, s_ahead = s * ca + c * sa;
     p->om += p->wn * p->wn * p->ts * e;
     out[0] = p->th;
     out[1] = p->om;
     out[2] = c;
     out[3] = s;
-    const double half = 0.5 * p->ts * p->om;
-    if (fabs(half) <= SMALL_ANGLE) {
-        double ch, sh;
-        small_cos_sin(half, &ch, &sh);
-        out[4] = c * ch - s * sh;
-        out[5] = s * ch + c * sh;
+    half_turn(p);
+    if (p->half_ok) {
+        out[4] = c * p->ch - s * p->sh;
+        out[5] = s * p->ch + c * p->sh;
     } else {
-        out[4] = cos(p->th + half);
-        out[5] = sin(p->th + half);
+        out[4] = cos(p->th + 0.5 * p->ts * p->om);
+        out[5] = sin(p->th + 0.5 * p->ts * p->om);
     }
     const double step = p->ts * (p->om + 2.0 * p->zeta * p->wn * e);
     p->th += step;
@@ -163,7 +178,7 @@ static inline __attribute__((always_inline)) void pll_step(struct pll *p, double
     if (turns < 0.0 || turns >= 1.0) /* floor(turns) is 0 in between: no libm call */
         p->th -= 2.0 * PI * floor(turns);
     p->steps += 1.0;
-    if (p->steps >= RESYNC || !(fabs(ahead) <= SMALL_ANGLE && fabs(by_e) <= SMALL_ANGLE)) {
+    if (p->steps >= RESYNC || !(ahead_ok && fabs(by_e) <= SMALL_ANGLE)) {
         p->steps = 0.0;
         p->c = cos(p->th);
         p->s = sin(p->th);
@@ -261,17 +276,17 @@ static inline double finite_or_max(double x)
  *            of the pipeline's ring): va vb vc ia ib ic omega i_d i_q v_d v_q
  *            (kernels.ROWS): the phases, the Park rotations of the currents at the angle and
  *            of the voltages at the mid angle (the input power v.i is summed from the phases).
- * sums (16,), read and updated in place when not NULL: a hop's sums carried across blocks, added to
+ * sums (17,), read and updated in place when not NULL: a hop's sums carried across blocks, added to
  *            in sample order (the same however the stream is cut, the angle's to the rounding of
  *            its unwrapping, which each block does from theta_last), for the operating point,
  *            the running check and the torque regression (pipeline.HopSums): ref (the angle they
  *            are taken about, rad, not changed), then the sums of the input power v.i (W, from the
  *            phases), omega, i_q, i_d i_q, i_d^2 + i_q^2; the minima of i_d, i_q and their maxima
  *            (NaN once a sample is NaN); the sums of dth = angle - ref, dth^2, dth omega,
- *            dth power, omega^2, omega power.
+ *            dth power, omega^2, omega power; the sum of i_d.
  * Returns 1 when a sample is NaN or saturated, else 0.
  */
-#define N_SUMS 16
+#define N_SUMS 17
 int block_rows(const double *i_abc, ptrdiff_t i_stride, const double *v_abc, ptrdiff_t v_stride, ptrdiff_t n,
                const double *clarke, const double *limits, double theta_last, const double *angle,
                const double *pll_par, double *pll_state, double *unwrapped, void *rows, ptrdiff_t rows_stride,
@@ -297,7 +312,9 @@ int block_rows(const double *i_abc, ptrdiff_t i_stride, const double *v_abc, ptr
         const double ia = i_abc[k], ib = i_abc[i_stride + k], ic = i_abc[2 * i_stride + k];
         const double va = v_abc[k], vb = v_abc[v_stride + k], vc = v_abc[2 * v_stride + k];
         double a[6]; /* angle, omega, cos, sin, cos and sin of the mid angle */
-        if (angle == NULL)
+        if (angle == NULL && isfinite(ia + ib + ic)) /* each is finite (as none is beyond 1e308) */
+            pll_step(&p, ia, ib, ic, a);
+        else if (angle == NULL)
             pll_step(&p, finite_or_max(ia), finite_or_max(ib), finite_or_max(ic), a);
         else
             for (int j = 0; j < 6; ++j)
@@ -326,10 +343,11 @@ int block_rows(const double *i_abc, ptrdiff_t i_stride, const double *v_abc, ptr
             sm[3] += i_q;
             sm[4] += i_d * i_q;
             sm[5] += i_d * i_d + i_q * i_q;
-            sm[6] = i_d < sm[6] || isnan(i_d) ? i_d : sm[6]; /* a NaN stays */
-            sm[7] = i_q < sm[7] || isnan(i_q) ? i_q : sm[7];
-            sm[8] = i_d > sm[8] || isnan(i_d) ? i_d : sm[8];
-            sm[9] = i_q > sm[9] || isnan(i_q) ? i_q : sm[9];
+            sm[6] = i_d < sm[6] ? i_d : sm[6]; /* a NaN sample is skipped here, and marked below */
+            sm[7] = i_q < sm[7] ? i_q : sm[7];
+            sm[8] = i_d > sm[8] ? i_d : sm[8];
+            sm[9] = i_q > sm[9] ? i_q : sm[9];
+            sm[16] += i_d;
             sm[10] += dth;
             sm[11] += dth * dth;
             sm[12] += dth * om;
@@ -345,9 +363,14 @@ int block_rows(const double *i_abc, ptrdiff_t i_stride, const double *v_abc, ptr
     }
     if (angle == NULL)
         pll_save(&p, pll_state);
-    if (sums != NULL)
+    if (sums != NULL) {
+        if (isnan(sm[16])) /* a NaN i_d (or +-inf both ways) */
+            sm[6] = sm[8] = NAN;
+        if (isnan(sm[3]))
+            sm[7] = sm[9] = NAN;
         for (int j = 1; j < N_SUMS; ++j)
             sums[j] = sm[j];
+    }
     return bad;
 }
 
@@ -365,15 +388,17 @@ int block_rows(const double *i_abc, ptrdiff_t i_stride, const double *v_abc, ptr
  * and sin of theta come from a phasor rotated by the angle's steps (exact every RESYNC samples),
  * within 1e-14 of libm's.
  */
-void ltv_residuals(const double *a0, const double *a1, const double *omega, const double *u, const double *i_dq,
-                   ptrdiff_t i_stride, const double *theta, ptrdiff_t n, ptrdiff_t m, double *x, double *r)
+/* ltv_residuals's loop; inlined with m a constant (1, 2: the pipeline's open windows) its runs'
+ * states stay in registers. */
+static inline __attribute__((always_inline)) void ltv_loop(const double *a0, const double *a1, const double *omega,
+                                                           const double *u, const double *i_dq, ptrdiff_t i_stride,
+                                                           const double *theta, ptrdiff_t n, const ptrdiff_t m,
+                                                           double *x, double *r)
 {
     const double a0_dd = a0[0], a0_dq = a0[1], a0_qd = a0[2], a0_qq = a0[3];
     const double a1_dd = a1[0], a1_dq = a1[1], a1_qd = a1[2], a1_qq = a1[3];
     const double *ud = u, *uq = u + n, *id = i_dq, *iq = i_dq + i_stride;
     double d[LTV_RUNS], q[LTV_RUNS], c = 0.0, s = 0.0;
-    if (m > LTV_RUNS)
-        return; /* the wrapper refuses it */
     for (ptrdiff_t j = 0; j < m; ++j) {
         d[j] = x[j];
         q[j] = x[m + j];
@@ -403,4 +428,15 @@ void ltv_residuals(const double *a0, const double *a1, const double *omega, cons
         x[j] = d[j];
         x[m + j] = q[j];
     }
+}
+
+void ltv_residuals(const double *a0, const double *a1, const double *omega, const double *u, const double *i_dq,
+                   ptrdiff_t i_stride, const double *theta, ptrdiff_t n, ptrdiff_t m, double *x, double *r)
+{
+    if (m == 1)
+        ltv_loop(a0, a1, omega, u, i_dq, i_stride, theta, n, 1, x, r);
+    else if (m == 2)
+        ltv_loop(a0, a1, omega, u, i_dq, i_stride, theta, n, 2, x, r);
+    else if (m <= LTV_RUNS) /* the wrapper refuses more */
+        ltv_loop(a0, a1, omega, u, i_dq, i_stride, theta, n, m, x, r);
 }

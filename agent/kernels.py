@@ -62,9 +62,9 @@ ROWS = ("va", "vb", "vc", "ia", "ib", "ic", "omega_e", "i_d", "i_q", "v_d", "v_q
 #: A hop's sums as :func:`block_rows` carries them (:func:`new_sums`): the angle they are taken
 #: about (rad), sums of power (W, v.i of the phases), omega, i_q, i_d i_q, i_d^2 + i_q^2; minima of
 #: i_d, i_q and maxima (NaN once a sample is NaN); sums of dth = angle - ref, dth^2, dth omega,
-#: dth power, omega^2, omega power.
+#: dth power, omega^2, omega power; sum of i_d.
 SUMS = ("ref", "power", "omega", "i_q", "i_dq", "i_sq", "i_d_min", "i_q_min", "i_d_max", "i_q_max",
-        "dth", "dth_sq", "dth_omega", "dth_power", "omega_sq", "omega_power")
+        "dth", "dth_sq", "dth_omega", "dth_power", "omega_sq", "omega_power", "i_d")
 
 LTV_RUNS = 8  #: the most free runs :func:`ltv_residuals` takes at once (agent/_kernels.c's)
 #: Length of the PLL's parameter vector and of its state vector.

@@ -119,7 +119,7 @@ def hop_sums(sums: np.ndarray, n: int) -> HopSums:
     carried over it (:data:`agent.kernels.SUMS`, about their angle ``ref``): the angle's mean, and
     its moments about it (sum of (theta - mean)^2 = sum dth^2 - (sum dth)^2 / n, and alike)."""
     ref, power, omega, i_q, i_dq, i_sq, d_lo, q_lo, d_hi, q_hi, dth, dth_sq, dth_omega, dth_power, omega_sq, \
-        omega_power = sums.tolist()
+        omega_power, _ = sums.tolist()
     shift = dth / n  # the mean less ref
     return HopSums(n, power, omega, i_q, i_dq, i_sq, (d_lo, q_lo), (d_hi, q_hi), ref + shift,
                    dth_sq - shift * dth, dth_omega - shift * omega, dth_power - shift * power, omega_sq, omega_power)

@@ -292,7 +292,7 @@ def test_block_rows_hop_sums_equal_numpy_however_the_stream_is_cut(dtype):
     got = flat(hop_sums(nan, n))
     assert np.isnan(got[[0, 2, 3, 4, 5, 6, 7, 8]]).all() and np.isfinite(got[[1, 9, 13]]).all()
     with pytest.raises(ValueError, match="sums"):
-        block_rows(i_abc, v_abc, CLARKE[:2], [np.inf, np.inf], 3e5, np.empty((11, n)), angle=angle, sums=np.zeros(15))
+        block_rows(i_abc, v_abc, CLARKE[:2], [np.inf, np.inf], 3e5, np.empty((11, n)), angle=angle, sums=np.zeros(16))
 
 
 def test_ltv_residuals_equal_simulate_ltv_and_numpy_across_cuts():
