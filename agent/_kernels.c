@@ -287,16 +287,19 @@ static inline double finite_or_max(double x)
  * Returns 1 when a sample is NaN or saturated, else 0.
  */
 #define N_SUMS 17
-int block_rows(const double *i_abc, ptrdiff_t i_stride, const double *v_abc, ptrdiff_t v_stride, ptrdiff_t n,
-               const double *clarke, const double *limits, double theta_last, const double *angle,
-               const double *pll_par, double *pll_state, double *unwrapped, void *rows, ptrdiff_t rows_stride,
-               int f32, double *sums)
+/* block_rows's loop; inlined with its switches constant (the PLL's or a given angle, float rows,
+ * sums), each case is compiled without the others' tests. */
+static inline __attribute__((always_inline)) int rows_loop(
+    const double *i_abc, ptrdiff_t i_stride, const double *v_abc, ptrdiff_t v_stride, ptrdiff_t n,
+    const double *clarke, const double *limits, double theta_last, const double *angle, const double *pll_par,
+    double *pll_state, double *unwrapped, void *rows, ptrdiff_t rows_stride, const int f32, double *sums,
+    const int with_pll, const int with_sums)
 {
     const double c_aa = clarke[0], c_ab = clarke[1], c_ac = clarke[2];
     const double c_ba = clarke[3], c_bb = clarke[4], c_bc = clarke[5];
     const double i_lim = limits[0], v_lim = limits[1], two_pi = 2.0 * PI;
     struct pll p = {0};
-    if (angle == NULL)
+    if (with_pll)
         p = pll_load(clarke, pll_par, pll_state);
     float *r32 = (float *)rows;
     double *r64 = (double *)rows;
@@ -304,7 +307,7 @@ int block_rows(const double *i_abc, ptrdiff_t i_stride, const double *v_abc, ptr
     double prev = theta_last, turns = 0.0;
     int bad = 0;
     double sm[N_SUMS] = {0.0};
-    if (sums != NULL)
+    if (with_sums)
         for (int j = 0; j < N_SUMS; ++j)
             sm[j] = sums[j];
 
@@ -312,9 +315,9 @@ int block_rows(const double *i_abc, ptrdiff_t i_stride, const double *v_abc, ptr
         const double ia = i_abc[k], ib = i_abc[i_stride + k], ic = i_abc[2 * i_stride + k];
         const double va = v_abc[k], vb = v_abc[v_stride + k], vc = v_abc[2 * v_stride + k];
         double a[6]; /* angle, omega, cos, sin, cos and sin of the mid angle */
-        if (angle == NULL && isfinite(ia + ib + ic)) /* each is finite (as none is beyond 1e308) */
+        if (with_pll && isfinite(ia + ib + ic)) /* each is finite (as none is beyond 1e308) */
             pll_step(&p, ia, ib, ic, a);
-        else if (angle == NULL)
+        else if (with_pll)
             pll_step(&p, finite_or_max(ia), finite_or_max(ib), finite_or_max(ic), a);
         else
             for (int j = 0; j < 6; ++j)
@@ -336,7 +339,7 @@ int block_rows(const double *i_abc, ptrdiff_t i_stride, const double *v_abc, ptr
     (r[k] = va, r[rs + k] = vb, r[2 * rs + k] = vc, r[3 * rs + k] = ia, r[4 * rs + k] = ib,                \
      r[5 * rs + k] = ic, r[6 * rs + k] = a[1], r[7 * rs + k] = i_d, r[8 * rs + k] = i_q, r[9 * rs + k] = v_d, \
      r[10 * rs + k] = v_q)
-        if (sums != NULL) { /* in the loop's spare cycles: its latency runs through the PLL */
+        if (with_sums) { /* in the loop's spare cycles: its latency runs through the PLL */
             const double pw = va * ia + vb * ib + vc * ic, om = a[1], dth = th - sm[0];
             sm[1] += pw;
             sm[2] += om;
@@ -361,9 +364,9 @@ int block_rows(const double *i_abc, ptrdiff_t i_stride, const double *v_abc, ptr
             STORE_ROWS(r64);
 #undef STORE_ROWS
     }
-    if (angle == NULL)
+    if (with_pll)
         pll_save(&p, pll_state);
-    if (sums != NULL) {
+    if (with_sums) {
         if (isnan(sm[16])) /* a NaN i_d (or +-inf both ways) */
             sm[6] = sm[8] = NAN;
         if (isnan(sm[3]))
@@ -372,6 +375,18 @@ int block_rows(const double *i_abc, ptrdiff_t i_stride, const double *v_abc, ptr
             sums[j] = sm[j];
     }
     return bad;
+}
+
+int block_rows(const double *i_abc, ptrdiff_t i_stride, const double *v_abc, ptrdiff_t v_stride, ptrdiff_t n,
+               const double *clarke, const double *limits, double theta_last, const double *angle,
+               const double *pll_par, double *pll_state, double *unwrapped, void *rows, ptrdiff_t rows_stride,
+               int f32, double *sums)
+{
+    if (angle == NULL && f32 && sums != NULL) /* the pipeline's case without an encoder */
+        return rows_loop(i_abc, i_stride, v_abc, v_stride, n, clarke, limits, theta_last, angle, pll_par, pll_state,
+                         unwrapped, rows, rows_stride, 1, sums, 1, 1);
+    return rows_loop(i_abc, i_stride, v_abc, v_stride, n, clarke, limits, theta_last, angle, pll_par, pll_state,
+                     unwrapped, rows, rows_stride, f32, sums, angle == NULL, sums != NULL);
 }
 
 #define LTV_RUNS 8 /* the most runs ltv_residuals takes at once */
