@@ -50,3 +50,24 @@ def test_misses_are_grouped_by_the_attribute_that_concentrates_them():
     assert f"p = {p:.2g}" in found[0] and "holds over all" in found[0]
     even = [(drive(j, j % 2 == 0), j % 3 == 0) for j in range(60)]
     assert misses_by_attribute(even) == []
+
+
+def test_the_table_counts_the_first_ranked_misses_whose_records_were_named():
+    """A first-ranked, revealable, not significant effect for which explain said how many records
+    like these would settle it counts in its own column; one it said nothing of, or a significant
+    one, does not."""
+    from bench.bench_family import ATTRIBUTES, table
+
+    def result(seed, significant, note):
+        row = {"effect": "current_offset", "rank": 1, "revealable": True, "significant": significant,
+               "answer": None, "gain": 3.0, "error": 0.1, "wrong_claims": [], "note": note}
+        return {"seed": seed, "drive": {k: "x" for k in ATTRIBUTES}, "rows": [row],
+                "null": {"claims": [], "answer": None}}
+
+    results = [result(1, False, "not significant with these 4 records (p = 0.002, Holm needs < 0.0013): its share "
+                                "of the error is 36% to 76% between records; about 5 records like these would settle "
+                                "it if it is as large as measured"),
+               result(2, False, "at bound: the fit wants it beyond its physical range"),
+               result(3, True, "")]
+    line = next(x for x in table(results, ["current_offset"]).splitlines() if x.startswith("| current_offset"))
+    assert line.split(" | ")[3:5] == ["1/3 = 33%", "1"], line
