@@ -63,11 +63,25 @@ def amplitude_spectrum(x, rate_hz: float, window: str = "hann", bins: int | None
         spectrum = _low_bins(x * w, bins)
     else:
         spectrum = np.fft.rfft(x * w, axis=-1)[..., :bins]
-    amp = np.abs(spectrum) * (2.0 / w.sum())
+    amp = np.abs(spectrum) * _gain(window, n)
     amp[..., 0] *= 0.5
     if n % 2 == 0 and amp.shape[-1] == n // 2 + 1:
         amp[..., -1] *= 0.5
-    return np.fft.rfftfreq(n, 1.0 / rate_hz)[:amp.shape[-1]], amp
+    return _freqs(n, float(rate_hz), amp.shape[-1]), amp
+
+
+@lru_cache(maxsize=32)
+def _gain(window: str, n: int) -> float:
+    """2 / sum(w): the coherent-gain correction of a single-sided amplitude."""
+    return 2.0 / _window(window, n).sum()
+
+
+@lru_cache(maxsize=32)
+def _freqs(n: int, rate_hz: float, bins: int) -> np.ndarray:
+    """The first ``bins`` of ``numpy.fft.rfftfreq(n, 1 / rate_hz)``, the same values (read-only)."""
+    f = np.fft.rfftfreq(n, 1.0 / rate_hz)[:bins].copy()
+    f.flags.writeable = False
+    return f
 
 
 def peak_near(freqs, amplitude, f_hz, half_width: int = 1):
