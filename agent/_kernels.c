@@ -125,14 +125,11 @@ static void pll_save(const struct pll *p, double *state)
         state[j] = st[j];
 }
 
-/* One sample (xa, xb, xc) through the loop: out (6,) = the angle used for it, the integrator after
- * it, cos and sin of the angle and of the mid angle angle + Ts omega / 2 (at which a
+/* One sample through the loop, its Clarke components (al, be) (the phases' alpha and beta, struct
+ * pll's Clarke rows): out (6,) = the angle used for it, the integrator after it, cos and sin of the angle and of the mid angle angle + Ts omega / 2 (at which a
  * zero-order-held voltage is rotated). Inlined into the loops, p stays in registers. */
-static inline __attribute__((always_inline)) void pll_step(struct pll *p, double xa, double xb, double xc,
-                                                           double *out)
+static inline __attribute__((always_inline)) void pll_step(struct pll *p, double al, double be, double *out)
 {
-    const double al = p->c_aa * xa + p->c_ab * xb + p->c_ac * xc;
-    const double be = p->c_ba * xa + p->c_bb * xb + p->c_bc * xc;
     const double c = p->c, s = p->s, d = al * c + be * s, q = -al * s + be * c;
     double e = 0.0;
     if (isfinite(d) && isfinite(q) && d * d + q * q > p->amin2) {
@@ -203,7 +200,8 @@ void pll_run(const double *x_abc, ptrdiff_t n, const double *clarke, const doubl
     struct pll p = pll_load(clarke, par, state);
     for (ptrdiff_t k = 0; k < n; ++k) {
         double out[6];
-        pll_step(&p, x_abc[k], x_abc[n + k], x_abc[2 * n + k], out);
+        const double xa = x_abc[k], xb = x_abc[n + k], xc = x_abc[2 * n + k];
+        pll_step(&p, p.c_aa * xa + p.c_ab * xb + p.c_ac * xc, p.c_ba * xa + p.c_bb * xb + p.c_bc * xc, out);
         theta[k] = out[0];
         omega[k] = out[1];
         for (int j = 0; j < 4; ++j)
@@ -253,6 +251,14 @@ void simulate_ltv(const double *a0, const double *a1, const double *omega, const
     }
 }
 
+
+/* The largest of |a|, |b|, |c| (for finite values: a NaN may go unseen). */
+static inline double largest_abs(double a, double b, double c)
+{
+    a = fabs(a), b = fabs(b), c = fabs(c);
+    a = a > b ? a : b;
+    return a > c ? a : c;
+}
 
 /* nan_to_num's value of x: NaN -> 0, +-inf -> +-DBL_MAX (the PLL's input, whatever the samples). */
 static inline double finite_or_max(double x)
@@ -314,12 +320,15 @@ static inline __attribute__((always_inline)) int rows_loop(
     for (ptrdiff_t k = 0; k < n; ++k) {
         const double ia = i_abc[k], ib = i_abc[i_stride + k], ic = i_abc[2 * i_stride + k];
         const double va = v_abc[k], vb = v_abc[v_stride + k], vc = v_abc[2 * v_stride + k];
+        const double i_al = c_aa * ia + c_ab * ib + c_ac * ic, i_be = c_ba * ia + c_bb * ib + c_bc * ic;
+        const int finite = isfinite(ia + ib + ic) && isfinite(va + vb + vc); /* each is (none is beyond 1e308) */
         double a[6]; /* angle, omega, cos, sin, cos and sin of the mid angle */
-        if (with_pll && isfinite(ia + ib + ic)) /* each is finite (as none is beyond 1e308) */
-            pll_step(&p, ia, ib, ic, a);
-        else if (with_pll)
-            pll_step(&p, finite_or_max(ia), finite_or_max(ib), finite_or_max(ic), a);
-        else
+        if (with_pll && finite)
+            pll_step(&p, i_al, i_be, a);
+        else if (with_pll) {
+            const double xa = finite_or_max(ia), xb = finite_or_max(ib), xc = finite_or_max(ic);
+            pll_step(&p, c_aa * xa + c_ab * xb + c_ac * xc, c_ba * xa + c_bb * xb + c_bc * xc, a);
+        } else
             for (int j = 0; j < 6; ++j)
                 a[j] = angle[j * n + k];
         const double step = a[0] - prev;
@@ -328,10 +337,9 @@ static inline __attribute__((always_inline)) int rows_loop(
         prev = a[0];
         const double th = a[0] + turns;
         unwrapped[k] = th;
-        if (!(fabs(ia) < i_lim && fabs(ib) < i_lim && fabs(ic) < i_lim && fabs(va) < v_lim
-              && fabs(vb) < v_lim && fabs(vc) < v_lim))
+        const double i_max = largest_abs(ia, ib, ic), v_max = largest_abs(va, vb, vc);
+        if (!(finite && i_max < i_lim && v_max < v_lim)) /* NaN, infinite or saturated */
             bad = 1;
-        const double i_al = c_aa * ia + c_ab * ib + c_ac * ic, i_be = c_ba * ia + c_bb * ib + c_bc * ic;
         const double v_al = c_aa * va + c_ab * vb + c_ac * vc, v_be = c_ba * va + c_bb * vb + c_bc * vc;
         const double i_d = i_al * a[2] + i_be * a[3], i_q = -i_al * a[3] + i_be * a[2];
         const double v_d = v_al * a[4] + v_be * a[5], v_q = -v_al * a[5] + v_be * a[4];
