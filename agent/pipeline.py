@@ -136,9 +136,9 @@ class _OpenWindows:
         self.done: dict[int, np.ndarray] = {}
 
 
-def _gram(x: np.ndarray) -> np.ndarray:
-    """x x^T of a few long rows ``x`` (m, N), by their dot products (BLAS's matrix product is
-    about twice as slow at this shape)."""
+def _gram(x) -> np.ndarray:
+    """x x^T of a few long rows ``x`` (m rows of N), by their dot products (BLAS's matrix product
+    is about twice as slow at this shape)."""
     m = len(x)
     g = np.empty((m, m))
     for i in range(m):
@@ -524,8 +524,9 @@ class DriveMonitor:
         for end in ends:
             if self._q_info.get(end, (None,))[0] != name:
                 part = self._hop_signals(end, phases=bool(m.extra_q))  # a clean span (_hop judges no other)
-                x = np.array([t.column(part) for t in terms])[:, :-1]  # regressors(), transposed: rows
-                self._q_info[end] = (name, _gram(x), x @ part.i_dq[1, 1:])
+                x = [np.asarray(t.column(part))[:-1] for t in terms]  # regressors()'s columns, no stacked copy
+                y = part.i_dq[1, 1:]
+                self._q_info[end] = (name, _gram(x), np.array([col @ y for col in x]))
         for old in [k for k in self._q_info if k not in ends]:
             del self._q_info[old]
         info = sum(self._q_info[e][1] for e in ends) + np.eye(len(terms)) * 1e-6
