@@ -6,7 +6,9 @@ and the systemd notify socket:
 
 * chain: one drive's signal chain in this process, the revision before the plant-scale work
   (``REFERENCE``: its whole ``agent`` package, C kernels included) and this one on the same
-  blocks, alternating, in one run: signal seconds per CPU second;
+  blocks, alternating, in one run: signal seconds per CPU second; with ``--instructions`` only
+  the instructions each executes per signal second, counted by valgrind (the machine's load,
+  which moves the CPU seconds, does not move them);
 * lossless: N drives replaying ``seconds`` of signal each as fast as the agent takes them: signal
   seconds (all drives) per CPU second (all the agent's processes), peak resident memory (the sum
   of the processes' high-water marks);
@@ -348,11 +350,11 @@ def realtime(tmp: Path, data: dict, drives: int, onset_s: float, seconds: float,
             "watchdog_pings": pings}
 
 
-def _reference_package(revision: str):
+def _reference_package(revision: str) -> Path:
     """``revision``'s whole ``agent`` package (today's code: its pipeline and every module it uses,
     the PLL's C loop included), loaded beside this one as ``agent_reference`` (its imports
     renamed, its C kernels built with setup.py's flags), so that a change to a shared module
-    cannot speed the reference up too."""
+    cannot speed the reference up too; returns the directory that holds it (on sys.path)."""
     import io
     import sysconfig
     import tarfile
@@ -368,58 +370,114 @@ def _reference_package(revision: str):
                     str(pkg / "_kernels.c"), "-o", str(pkg / ("_kernels" + sysconfig.get_config_var("EXT_SUFFIX"))),
                     "-lm"], check=True)
     sys.path.insert(0, str(tmp))
-    try:
-        return importlib.import_module("agent_reference")
-    finally:
-        sys.path.remove(str(tmp))
+    return tmp
+
+
+def _reference_library(data: dict, revision: str) -> tuple[Path, Path]:
+    """The reference's profile and library (its baseline learnt with its own code from the records
+    this one learnt from: a library format changed since, and without a model the reference would
+    skip most of its chain), in the run's temporary directory; (profile file, library dir)."""
+    ref_dir = data["state"].parent / "reference"
+    ref_dir.mkdir(exist_ok=True)
+    profile_file = ref_dir / PROFILE.name  # as that revision wrote it (keys were added since)
+    profile_file.write_bytes(subprocess.run(["git", "show", f"{revision}:{PROFILE.relative_to(ROOT)}"], cwd=ROOT,
+                                            capture_output=True, check=True).stdout)
+    lib = ref_dir / "library"
+    if not (lib / "b80.json").exists():
+        lib.mkdir(exist_ok=True)
+        prof = importlib.import_module("agent_reference.profile").load_profile(profile_file)
+        base = importlib.import_module("agent_reference.baseline").identify_baseline(learning_records(), prof)
+        importlib.import_module("agent_reference.modelfile").save_baseline(base, lib / "b80.json")
+    return profile_file, lib
+
+
+def _monitor(which: str, data: dict, ref_files: tuple[Path, Path] | None = None):
+    """One drive's monitor of this revision ("this") or of the reference (its package imported)."""
+    if which == "this":
+        from agent import pipeline
+        from agent.library import ModelLibrary
+        from agent.profile import load_profile
+
+        return pipeline.DriveMonitor("d1", load_profile(PROFILE), ModelLibrary(data["state"] / "library"))
+    ref_pipeline, ref_library, ref_profile = (importlib.import_module(f"agent_reference.{m}")
+                                              for m in ("pipeline", "library", "profile"))
+    return ref_pipeline.DriveMonitor("d1", ref_profile.load_profile(ref_files[0]), ref_library.ModelLibrary(ref_files[1]))
+
+
+def _blocks(rec, seconds: float):
+    """The record's 0.1 s blocks, repeated back to back (one contiguous stream) for ``seconds``."""
+    from protocols.base import Block
+
+    first, k = 0, 0
+    for _ in range(int(round(seconds * 10))):
+        if k + 2500 > rec.n:
+            first, k = first + rec.n, 0
+        yield Block("d1", RATE, rec.v_abc[:, k:k + 2500], rec.i_abc[:, k:k + 2500], first + k)
+        k += 2500
 
 
 def chain(data: dict, seconds: float, revision: str = REFERENCE) -> dict:
     """One drive's chain, ``revision``'s and this one, alternating on the same blocks (0.1 s):
     signal seconds per CPU second of each, and their ratio."""
-    from agent import pipeline
-    from agent.library import ModelLibrary
-    from agent.profile import load_profile
     from agent.records import load_record
-    from protocols.base import Block
 
     _reference_package(revision)
-    ref_pipeline, ref_library, ref_profile = (importlib.import_module(f"agent_reference.{m}")
-                                              for m in ("pipeline", "library", "profile"))
+    ref_files = _reference_library(data, revision)
+    monitors = {name: _monitor(name, data, ref_files) for name in ("reference", "this")}
     rec = load_record(data["healthy"][0])
-    # each revision reads the drive's profile as that revision wrote it (keys were added since)
-    ref_dir = data["state"].parent / "reference"  # in the run's temporary directory
-    ref_dir.mkdir(exist_ok=True)
-    ref_profile_file = ref_dir / PROFILE.name
-    ref_profile_file.write_bytes(subprocess.run(["git", "show", f"{revision}:{PROFILE.relative_to(ROOT)}"], cwd=ROOT,
-                                                capture_output=True, check=True).stdout)
-    # ... and learns its baseline with its own code from the records this one learnt from (a
-    # library format changed since: without a model the reference would skip most of its chain)
-    ref_prof = ref_profile.load_profile(ref_profile_file)
-    ref_lib = ref_dir / "library"
-    ref_lib.mkdir(exist_ok=True)
-    ref_base = importlib.import_module("agent_reference.baseline").identify_baseline(learning_records(), ref_prof)
-    importlib.import_module("agent_reference.modelfile").save_baseline(ref_base, ref_lib / "b80.json")
-    monitors = {"reference": ref_pipeline.DriveMonitor("d1", ref_prof, ref_library.ModelLibrary(ref_lib)),
-                "this": pipeline.DriveMonitor("d1", load_profile(PROFILE), ModelLibrary(data["state"] / "library"))}
+    blocks = list(_blocks(rec, seconds + 8.0))
     cpu = dict.fromkeys(monitors, 0.0)
-    first, played = 0, 0.0
-    while played < seconds + 8.0:
-        for k in range(0, rec.n - 2499, 12_500):  # 0.5 s at a time, each chain in turn
-            for name, mon in monitors.items():
-                c = time.process_time()
-                for j in range(k, k + 12_500, 2500):
-                    mon.process(Block("d1", RATE, rec.v_abc[:, j:j + 2500], rec.i_abc[:, j:j + 2500], first + j))
-                if played >= 8.0:  # the first spans warm the caches up
-                    cpu[name] += time.process_time() - c
-            played += 0.5
-        first += rec.n
-    rate = {name: round((played - 8.0) / c, 1) for name, c in cpu.items()}
+    for k in range(0, len(blocks), 5):  # 0.5 s at a time, each chain in turn
+        for name, mon in monitors.items():
+            c = time.process_time()
+            for blk in blocks[k:k + 5]:
+                mon.process(blk)
+            if k >= 80:  # the first 8 s warm the caches up
+                cpu[name] += time.process_time() - c
+    played = len(blocks) / 10.0 - 8.0
+    rate = {name: round(played / c, 1) for name, c in cpu.items()}
     states = {name: f"{m.status.state}/{m.status.quality}" for name, m in monitors.items()}
     if not all(s.endswith("/good") for s in states.values()):  # a chain without its model does a part of the work
         raise RuntimeError(f"chain: a monitor did not judge with its baseline ({states}); the comparison is void")
-    return {"signal_s": played - 8.0, "signal_s_per_cpu_s": rate, "speedup": round(rate["this"] / rate["reference"], 2),
+    return {"signal_s": played, "signal_s_per_cpu_s": rate, "speedup": round(rate["this"] / rate["reference"], 2),
             "states": states}
+
+
+def chain_instructions(data: dict, revision: str = REFERENCE, short_s: float = 10.0, long_s: float = 30.0) -> dict:
+    """Instructions per signal second of each chain, counted by valgrind's callgrind (unmoved by the
+    machine's load): a process plays ``short_s`` and one ``long_s`` of signal through one drive's
+    monitor; the difference over the difference of seconds (start-up and learning cancel out)."""
+    ref_dir = _reference_package(revision)
+    ref_files = _reference_library(data, revision)
+    out = {}
+    for which in ("reference", "this"):
+        counts = []
+        for seconds in (short_s, long_s):
+            spec = json.dumps({"which": which, "seconds": seconds, "healthy": data["healthy"][0],
+                               "state": str(data["state"]), "ref": [str(f) for f in ref_files], "ref_dir": str(ref_dir)})
+            run = subprocess.run(["valgrind", "--tool=callgrind", "--callgrind-out-file=/dev/null", sys.executable,
+                                  "-m", "bench.bench_scale", "--play", spec], cwd=ROOT, capture_output=True, text=True)
+            found = re.search(r"I\s+refs:\s+([\d,]+)", run.stderr)
+            if run.returncode or not found:
+                raise RuntimeError(f"chain_instructions: valgrind on the {which} chain failed: {run.stderr[-500:]}")
+            counts.append(int(found.group(1).replace(",", "")))
+        out[which] = round((counts[1] - counts[0]) / (long_s - short_s) / 1e6, 2)
+    return {"m_instructions_per_signal_s": out, "ratio": round(out["reference"] / out["this"], 2)}
+
+
+def _play(spec: str) -> None:
+    """``--play``: one chain (:func:`chain_instructions`'s child) over the given seconds of signal."""
+    from agent.records import load_record
+
+    spec = json.loads(spec)
+    data = {"state": Path(spec["state"])}
+    if spec["which"] == "reference":
+        sys.path.insert(0, spec["ref_dir"])
+    mon = _monitor(spec["which"], data, tuple(Path(f) for f in spec["ref"]))
+    for blk in _blocks(load_record(spec["healthy"]), spec["seconds"]):
+        mon.process(blk)
+    if mon.status.quality != "good":
+        raise SystemExit(f"--play: the {spec['which']} chain did not judge with its baseline ({mon.status.quality})")
 
 
 def run(drive_counts=(1, 10, 50, 100), seconds: float = 40.0, realtime_s: float = 40.0, onset_s: float = 20.0,
@@ -442,7 +500,18 @@ def main(argv=None) -> int:
     ap.add_argument("--realtime-s", type=float, default=40.0, help="length of the real-time run, s (default 40)")
     ap.add_argument("--workers", type=int, default=0, help="the config's workers (default 0: automatic)")
     ap.add_argument("--chain-s", type=float, default=60.0, help="signal through each chain side by side, s (0: skip)")
+    ap.add_argument("--instructions", action="store_true",
+                    help="only the chains' instructions per signal second, by valgrind's callgrind (minutes)")
+    ap.add_argument("--play", help=argparse.SUPPRESS)  # chain_instructions's child
     args = ap.parse_args(argv)
+    if args.play:
+        _play(args.play)
+        return 0
+    if args.instructions:
+        with tempfile.TemporaryDirectory(prefix="bench-scale-") as tmp:
+            data = prepare(Path(tmp), 20.0, 10.0, 1)
+            print(json.dumps(chain_instructions(data), indent=1))
+        return 0
     counts = tuple(int(x) for x in args.drives.split(","))
     print(json.dumps(run(counts, args.seconds, args.realtime_s, workers=args.workers, chain_s=args.chain_s), indent=1))
     return 0
