@@ -59,7 +59,7 @@ from protocols.base import Block, DriveStatus
 log = logging.getLogger(__name__)
 
 
-_THETA_LIMIT = 2.0**20  #: rad; the buffered angle is kept below this
+_THETA_LIMIT = 2.0**20  #: rad; the buffered angle is kept within +- this (either sense of rotation)
 #: |t| of a feature's change within the learning stretches above which learning refuses (a fault
 #: starting while learning): with 40 stretches P(|t_38| > 6) = 5e-7 per split and feature
 LEARNING_SHIFT_T = 6.0
@@ -259,7 +259,7 @@ class DriveMonitor:
         self._encoder = block.theta_e is not None
         # one C pass per stretch of the block up to the next hop's end or the ring's end: the ring's
         # rows (Clarke, Park) written in place, the saturation check, the angle unwrapped across
-        # blocks (Signals wants it so) and the hop's sums; the angle is kept below 2^20 rad by
+        # blocks (Signals wants it so) and the hop's sums; the angle is kept within +-2^20 rad by
         # shifting the whole buffer by whole turns, which changes no cosine and no difference. A
         # hop is assessed before the next overwrites the span's oldest samples.
         if block.theta_e is not None:
@@ -282,7 +282,7 @@ class DriveMonitor:
                                                self._theta_last, rows, theta, self._sums)
             if bad:
                 self._bad_until = self._samples + take + self.n_span  # spans containing these samples are bad
-            if theta[-1] > _THETA_LIMIT:
+            if abs(theta[-1]) > _THETA_LIMIT:  # either sense of rotation
                 turns = 2 * np.pi * np.floor(theta[0] / (2 * np.pi))
                 self._theta -= turns
                 self._sums[0] -= turns

@@ -224,6 +224,32 @@ def test_the_listed_peaks_are_the_decisions_flagged_lines(library, rule, fault, 
     assert not listed[0] and level in set().union(*listed)  # lines at this level were compared
 
 
+@pytest.mark.parametrize("sense", [1, -1])
+def test_the_angle_shifted_by_whole_turns_changes_no_status(library, monkeypatch, sense):
+    """The buffered angle is kept within a limit by shifting it, the open hop's sums and the span's
+    hops by whole turns (half an hour of a 100 Hz stream reaches 2^20 rad), whichever the sense of
+    rotation (-1: phases b and c swapped); with the limit at 40 rad the shift runs every few
+    blocks, through hop ends and the ring's wrap, and every status is the same as without it."""
+    import agent.pipeline as pipeline
+
+    rec = splice(sim("healthy", 80.0, 10.0, 101), sim("gear_severe_wear", 80.0, 10.0, 101), int(6.0 * RATE))
+    if sense < 0:
+        rec = dataclasses.replace(rec, i_abc=rec.i_abc[[0, 2, 1]], v_abc=rec.v_abc[[0, 2, 1]])
+    ref_mon = DriveMonitor("d1", profile(), library, CFG)
+    ref = feed(ref_mon, [rec], 997)
+    monkeypatch.setattr(pipeline, "_THETA_LIMIT", 40.0)
+    mon = DriveMonitor("d1", profile(), library, CFG)
+    got = feed(mon, [rec], 997)
+    assert abs(mon._theta_last) < 100.0 < sense * ref_mon._theta_last  # the angle ran on one way, and was shifted
+    assert len(got) == len(ref) and (sense < 0 or {st.state for _, st in ref} >= {"normal", "warning"})
+    for (_, a), (_, b) in zip(got, ref):
+        assert (a.quality, a.state, a.spectrum_state, a.cluster_state) == (b.quality, b.state, b.spectrum_state,
+                                                                          b.cluster_state)
+        for f in ("fe_hz", "load_pct", "cluster_distance2"):
+            x, y = getattr(a, f), getattr(b, f)
+            assert (math.isnan(x) and math.isnan(y)) or math.isclose(x, y, rel_tol=1e-6, abs_tol=1e-9), f
+
+
 def test_persistence_and_hold_work_across_stream_gaps(library):
     """A snapshot source (Modbus) delivers one span per stream, a segmented one restarts every few
     seconds: consecutive assessments still persist a level, and ``alarm_hold_s`` of lower
