@@ -530,13 +530,17 @@ def floor_ratio(h_ctrl: dict) -> float | None:
     return total / floor if floor and total is not None else None
 
 
-def too_small_note(share: float, ratio: float | None) -> str:
-    """Why a candidate whose test passes is not claimed: its ``share`` of the control's held-out
-    error is below ``MIN_EXPLAINED`` (a real but minor part; ``ratio``: the control over its noise
-    floor, :func:`floor_ratio`, where what is left is larger than any candidate explains)."""
+def too_small_note(share: float, ratio: float | None, p: float | None = None, level: float | None = None) -> str:
+    """Why a candidate the records pin is not claimed though it explains some of the error: its
+    ``share`` of the control's held-out error is below ``MIN_EXPLAINED`` (a real but minor part
+    where its test passes; where ``p`` is at or above Holm's ``level``, it does not pass either);
+    ``ratio``: the control over its noise floor, :func:`floor_ratio`, where what is left is larger
+    than any candidate explains."""
     left = (f"; the control's error beyond the noise is {ratio:.3g} times the noise floor, so a larger error that no "
             f"candidate explains is left" if ratio is not None and ratio > 2.0 else "")
-    return (f"not claimed: its test passes, but it explains {share:.1%} of the control's held-out error, below the "
+    test = ("its test passes, but" if p is None or level is None or p < level else
+            f"its test does not pass (p = {p:.2g}, Holm needs < {level:.2g}), and")
+    return (f"not claimed: {test} it explains {share:.1%} of the control's held-out error, below the "
             f"{MIN_EXPLAINED:.0%} a claim needs{left}")
 
 
@@ -696,8 +700,8 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
             continue
         if _claimable(row):
             why = too_few_note(h_ctrl, h, level, row["p_value"])
-        elif _too_small(row) and row["p_value"] < level:
-            why = too_small_note(row["explained_fraction"], floor_ratio(h_ctrl))
+        elif _too_small(row):
+            why = too_small_note(row["explained_fraction"], floor_ratio(h_ctrl), row["p_value"], level)
         else:
             continue
         row["note"] = "; ".join(filter(None, [row.get("note"), why]))
