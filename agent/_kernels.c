@@ -109,7 +109,8 @@ static struct pll pll_load(const double *clarke, const double *par, const double
     struct pll p = {par[0], par[1], par[2], par[3], par[4], par[5], par[6], par[7],
                     par[8] > 0.0 ? par[8] * par[8] : 0.0, par[9],
                     clarke[0], clarke[1], clarke[2], clarke[3], clarke[4], clarke[5],
-                    state[0], state[1], state[2], state[3], state[4], state[5], state[6], state[7], state[8]};
+                    state[0], state[1], state[2], state[3], state[4], state[5], state[6], state[7], state[8],
+                    0.0, 0.0, 0}; /* the half turn: from the integrator, below */
     if (p.steps == 0.0) {
         p.c = cos(p.th);
         p.s = sin(p.th);
