@@ -70,10 +70,10 @@ bench-scale: setup-test
 bench-alarms: setup-test
 	$(BIN)/python -m bench.bench_alarms
 
-# the workbench over a randomised family of drives (bench/family: 60 drives per effect, 600 null
+# the workbench over a randomised family of drives (bench/family: 60 drives per effect, 800 null
 # drives; resumable), then on the project's simulator and on motulator (a third-party one): hidden effects,
 # two at once, 25 null record sets each, 10 with load steps and, for motulator, 10 without its encoder
-# angle (about 50 min the first time; motulator records are cached)
+# angle (about 55 min the first time; motulator records are cached)
 bench-workbench: setup-test
 	$(BIN)/python -m bench.bench_family
 	$(BIN)/python -m bench.bench_workbench

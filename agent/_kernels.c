@@ -7,7 +7,8 @@
  * follows its Python reference operation by operation (same order, no reassociation) and matches
  * it bit for bit (ltv_residuals runs the same recursion); block_rows replaces numpy expressions, its
  * hop sums included (tests/test_kernels.py compares them); the PLL replaces libm's per-sample cos,
- * sin, hypot and atan2 by a rotating phasor and series, within 1e-12 rad of the libm loop (tests/test_kernels.py).
+ * sin, hypot and atan2 by a rotating phasor and series, within 1e-12 rad of the libm loop
+ * (tests/test_kernels.py).
  */
 
 #include <float.h>
@@ -24,8 +25,10 @@ int kernels_abi(void) { return 6; }
 
 /* cos and sin of a small angle x (|x| <= SMALL_ANGLE) by their Taylor series: to x^4 / x^5 where
  * |x| <= 2^-10 (the loop's turn by its phase error, in lock), to x^6 / x^7 where |x| <= 1/32, to
- * x^8 / x^9 where |x| <= 1/16, to x^14 / x^13 above: the first term left out is below 1e-19 there, far under an ulp of the result. Estrin's scheme (pairs of terms, powers of x^2 in parallel):
- * the loop's latency runs through here every sample. */
+ * x^8 / x^9 where |x| <= 1/16, to x^14 / x^13 above: the first term left out is below 1e-19 there,
+ * far under an ulp of the result (tests/test_kernels.py holds each range to libm through
+ * pll_series). Estrin's scheme (pairs of terms, powers of x^2 in parallel): the loop's latency
+ * runs through here every sample. */
 #define SMALL_ANGLE 0.4
 static inline __attribute__((always_inline)) void small_cos_sin(double x, double *c, double *s)
 {
@@ -52,8 +55,8 @@ static inline __attribute__((always_inline)) void small_cos_sin(double x, double
 }
 
 /* The phase error atan2(-d, q). Near lock (q > 0, |d| <= q / 8, |e| < 0.125) by the odd series of
- * atan(t), t = -d / q: to t^5 where |t| <= 2^-10, to t^9 where |t| <= 1/64, to t^15 above; the first term left out is under
- * an ulp of e (Estrin's scheme, as above). Else libm's atan2. */
+ * atan(t), t = -d / q: to t^5 where |t| <= 2^-10, to t^9 where |t| <= 1/64, to t^15 above; the
+ * first term left out is under an ulp of e (Estrin's scheme, as above). Else libm's atan2. */
 static inline double phase_error(double d, double q)
 {
     if (q > 0.0 && fabs(d) <= 0.125 * q) {
@@ -127,8 +130,9 @@ static void pll_save(const struct pll *p, double *state)
 }
 
 /* One sample through the loop, its Clarke components (al, be) (the phases' alpha and beta, struct
- * pll's Clarke rows): out (6,) = the angle used for it, the integrator after it, cos and sin of the angle and of the mid angle angle + Ts omega / 2 (at which a
- * zero-order-held voltage is rotated). Inlined into the loops, p stays in registers. */
+ * pll's Clarke rows): out (6,) = the angle used for it, the integrator after it, cos and sin of the
+ * angle and of the mid angle angle + Ts omega / 2 (at which a zero-order-held voltage is rotated).
+ * Inlined into the loops, p stays in registers. */
 static inline __attribute__((always_inline)) void pll_step(struct pll *p, double al, double be, double *out)
 {
     const double c = p->c, s = p->s, d = al * c + be * s, q = -al * s + be * c;

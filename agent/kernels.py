@@ -1,10 +1,11 @@
 """The per-sample recursions of the agent's runtime path, in C (``agent/_kernels.c``) through ctypes.
 
 The PLL loop, the dq model's free-run simulation and the streaming pipeline's per-block pass
-(:func:`block_rows`, :func:`ltv_residuals`) are the sample-by-sample loops the running agent needs. They are plain C so that the agent never imports numba: numba and its LLVM
-cost about 120 MB of resident memory, most of the agent's 150 MB budget. The shared object is
-built in place by ``make setup`` (``pip install -e .``, a setuptools extension declared in
-pyproject.toml) and sits next to this file. The development tools (``agent.simulator``,
+(:func:`block_rows`, :func:`ltv_residuals`) are the sample-by-sample loops the running agent
+needs. They are plain C so that the agent never imports numba: numba and its LLVM cost about
+120 MB of resident memory, most of the agent's 150 MB budget. The shared object is built in
+place by ``make setup`` (``pip install -e .``, a setuptools extension declared in pyproject.toml)
+and sits next to this file. The development tools (``agent.simulator``,
 ``agent.workbench``) keep numba.
 """
 
@@ -142,13 +143,6 @@ def ltv_residuals(a0, a1, omega, u, i_dq, theta, x0) -> tuple[np.ndarray, np.nda
     _lib.ltv_residuals(_f64(a0, (2, 2), "a0"), _f64(a1, (2, 2), "a1"), w, _f64(u, (2, n), "u"), i.ctypes.data,
                        i_stride, _f64(theta, (n,), "theta"), n, m, _f64(x, (2, m), "x0"), r)
     return r, x
-
-
-def _rows_dtype(a: np.ndarray, shape: tuple[int, int], name: str) -> int:
-    """1 for a float32, 0 for a float64 C-contiguous ``a`` of ``shape`` (what the C side is told)."""
-    if a.dtype not in (np.float32, np.float64) or not a.flags.c_contiguous or a.shape != shape:
-        raise ValueError(f"{name} must be a C-contiguous float32 or float64 array shaped {shape}")
-    return int(a.dtype == np.float32)
 
 
 def _row_stride(a: np.ndarray) -> int | None:

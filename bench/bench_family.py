@@ -221,7 +221,9 @@ def is_miss(row: dict) -> bool:
 def _more_records_named(row: dict) -> bool:
     """Ranked first but not significant, and explain said how many records like these would settle
     it (its test's power, not the fit, is short: :func:`agent.workbench.explain.too_few_note`)."""
-    return row["rank"] == 1 and not row["significant"] and "would settle it" in (row.get("note") or "")
+    from agent.workbench.explain import SETTLED_BY
+
+    return row["rank"] == 1 and not row["significant"] and SETTLED_BY in (row.get("note") or "")
 
 
 def table(results: list, effects) -> str:

@@ -27,6 +27,7 @@ import importlib.util
 import json
 import os
 import re
+import shutil
 import signal
 import socket
 import subprocess
@@ -354,7 +355,7 @@ def _reference_package(revision: str) -> Path:
     """``revision``'s whole ``agent`` package (today's code: its pipeline and every module it uses,
     the PLL's C loop included), loaded beside this one as ``agent_reference`` (its imports
     renamed, its C kernels built with setup.py's flags), so that a change to a shared module
-    cannot speed the reference up too; returns the directory that holds it (on sys.path)."""
+    cannot speed the reference up too; returns the directory that holds it."""
     import io
     import sysconfig
     import tarfile
@@ -370,6 +371,10 @@ def _reference_package(revision: str) -> Path:
                     str(pkg / "_kernels.c"), "-o", str(pkg / ("_kernels" + sysconfig.get_config_var("EXT_SUFFIX"))),
                     "-lm"], check=True)
     sys.path.insert(0, str(tmp))
+    try:
+        importlib.import_module("agent_reference")  # its modules are found through the package from here on
+    finally:
+        sys.path.remove(str(tmp))
     return tmp
 
 
@@ -508,6 +513,8 @@ def main(argv=None) -> int:
         _play(args.play)
         return 0
     if args.instructions:
+        if shutil.which("valgrind") is None:
+            ap.error("--instructions counts with valgrind, which is not installed (apt install valgrind)")
         with tempfile.TemporaryDirectory(prefix="bench-scale-") as tmp:
             data = prepare(Path(tmp), 20.0, 10.0, 1)
             print(json.dumps(chain_instructions(data), indent=1))

@@ -56,6 +56,7 @@ def test_the_table_counts_the_first_ranked_misses_whose_records_were_named():
     """A first-ranked, revealable, not significant effect for which explain said how many records
     like these would settle it counts in its own column; one it said nothing of, or a significant
     one, does not."""
+    from agent.workbench.explain import SETTLED_BY
     from bench.bench_family import ATTRIBUTES, table
 
     def result(seed, significant, note):
@@ -65,8 +66,8 @@ def test_the_table_counts_the_first_ranked_misses_whose_records_were_named():
                 "null": {"claims": [], "answer": None}}
 
     results = [result(1, False, "not significant with these 4 records (p = 0.002, Holm needs < 0.0013): its share "
-                                "of the error is 36% to 76% between records; about 5 records like these would settle "
-                                "it if it is as large as measured"),
+                                f"of the error is 36% to 76% between records; about 5 {SETTLED_BY} if it is as large "
+                                "as measured"),
                result(2, False, "at bound: the fit wants it beyond its physical range"),
                result(3, True, "")]
     line = next(x for x in table(results, ["current_offset"]).splitlines() if x.startswith("| current_offset"))

@@ -421,7 +421,6 @@ def test_load_of_a_salient_mtpa_drive_counts_its_reluctance_torque():
     assert operating_point(record_signals(rec, magnet), magnet)["load_pct"] == pytest.approx(load - reluctance, abs=0.5)
 
 
-
 def test_an_event_a_rounding_apart_from_the_next_is_integrated_not_divided_by_zero():
     """Drive 20432 (a record clock asynchronous to its carrier): at 90 % load two event times fell
     a rounding apart, the integrator's step count came out 0 and the family run ended that drive in

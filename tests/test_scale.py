@@ -56,7 +56,6 @@ def _run_check(config: Path, lean: bool = False) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=str(ROOT), timeout=120)
 
 
-
 def test_a_drive_between_hops_holds_its_ring_and_little_else(tmp_path):
     """What one judging drive keeps between hops (numpy and Python allocations, tracemalloc) is its
     signal ring (``ring_bytes``) and at most 0.5 MB more (measured 0.25 MB): the per-drive share of
@@ -86,6 +85,7 @@ def test_a_drive_between_hops_holds_its_ring_and_little_else(tmp_path):
     assert (mon.status.state, mon.status.quality) == ("normal", "good")  # it judged with its model
     ring = ring_bytes(RATE, cfg.window_s * cfg.span_windows, cfg.window_s, cfg.hop_s)
     assert ring <= held <= ring + 0.5e6, (held, ring)
+
 
 @pytest.mark.parametrize("example", sorted(p.name for p in (ROOT / "config" / "gateway").glob("*.toml")))
 def test_gateway_examples_pass_check_config_without_the_workbench(example):

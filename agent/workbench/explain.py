@@ -347,6 +347,10 @@ def records_needed(ctrl: dict, cand: dict, alpha: float, most: int = 40) -> int 
     return None
 
 
+#: the words of :func:`too_few_note` that name the records that would settle a candidate
+SETTLED_BY = "records like these would settle it"
+
+
 def too_few_note(ctrl: dict, cand: dict, alpha: float, p: float) -> str:
     """Why a candidate that explains enough is not significant at ``alpha`` (its :func:`block_p`
     is ``p``), and how many records like these would make it so (:func:`records_needed`)."""
@@ -354,7 +358,7 @@ def too_few_note(ctrl: dict, cand: dict, alpha: float, p: float) -> str:
     more = records_needed(ctrl, cand, alpha)
     return (f"not significant with these {len(shares)} records (p = {p:.2g}, Holm needs < "
             f"{alpha:.2g}): its share of the error is {min(shares):.0%} to {max(shares):.0%} between records; "
-            + (f"about {more} records like these would settle it if it is as large as measured" if more else
+            + (f"about {more} {SETTLED_BY} if it is as large as measured" if more else
                "more records like these would not settle it"))
 
 
