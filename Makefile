@@ -71,11 +71,13 @@ bench-alarms: setup-test
 	$(BIN)/python -m bench.bench_alarms
 
 # the workbench over a randomised family of drives (bench/family: 60 drives per effect, 800 null
-# drives; resumable), then on the project's simulator and on motulator (a third-party one): hidden effects,
-# two at once, 25 null record sets each, 10 with load steps and, for motulator, 10 without its encoder
-# angle (about 55 min the first time; motulator records are cached)
+# drives; resumable) and the check of the records it names where four fall short, then on the project's
+# simulator and on motulator (a third-party one): hidden effects, two at once, 25 null record sets each,
+# 10 with load steps and, for motulator, 10 without its encoder angle (about 65 min the first time;
+# motulator records are cached)
 bench-workbench: setup-test
 	$(BIN)/python -m bench.bench_family
+	$(BIN)/python -m bench.bench_settle
 	$(BIN)/python -m bench.bench_workbench
 	$(BIN)/python -m bench.bench_workbench --seconds 2.5
 

@@ -9,7 +9,8 @@ family (``bench.family.draw_effect``), four records at 40/60/90/100 % load with 
 own voltage path (its hold, computation delay and reporting) is in every record: it is the drive,
 not a hidden effect. Per effect:
 
-* top-1: the true effect first;
+* top-1: the true effect first, of all drives and of those whose records can reveal it (where they
+  cannot, the effect leaves nothing in the records to rank);
 * significant: of the drives whose records can reveal it (``bench.family.revealable``: physics,
   not the workbench's power); where they cannot, whether explain said so;
 * gain: NRMSE of the best refit with a wrong effect over the true effect's (target >= 2);
@@ -78,7 +79,8 @@ def judge(doc: dict, effect: str, true: dict, revealable: tuple[bool, str]) -> d
     sig = [c["effect"] for c in rows if c["significant"]]
     out = {"effect": effect, "truth": true, "revealable": revealable[0], "why": revealable[1],
            "answer": doc.get("note"), "significant_effects": sig, "wrong_claims": [e for e in sig if e != effect],
-           "nrmse_control": doc["nrmse_control"], "noise_floor": doc["noise_floor"], "seconds": doc["seconds"]}
+           "nrmse_control": doc["nrmse_control"], "noise_floor": doc["noise_floor"], "seconds": doc["seconds"],
+           "records_named": records_named(doc), "candidates": candidates(doc)}
     if effect not in names:  # no ranking (the records carry no dynamics, or the control is unstable)
         return {**out, "rank": None, "top": None, "significant": False, "gain": None, "error": None, "fitted": None}
     row = rows[names.index(effect)]
@@ -91,13 +93,40 @@ def judge(doc: dict, effect: str, true: dict, revealable: tuple[bool, str]) -> d
             "identifiable": bool(row["identifiable"]), "note": row.get("note", "")}
 
 
+def records_named(doc: dict) -> dict:
+    """Effect -> how many records like these explain said would settle it (its ``records_needed``),
+    for every candidate that explained enough but missed Holm's level."""
+    return {c["effect"]: c["records_needed"] for c in doc["candidates"] if "records_needed" in c}
+
+
+def candidates(doc: dict) -> list[dict]:
+    """Every candidate of a set in explain's order, in brief: share explained, p, and its gates."""
+    keys = ("effect", "explained_fraction", "p_value", "significant", "identifiable", "at_bound", "negligible")
+    return [{k: c.get(k) for k in keys} for c in doc["candidates"]]
+
+
+def baseline(drive, prof, seconds: float):
+    """The user's first step: a baseline identified from four healthy records at ``BASE_LOAD``."""
+    from agent.baseline import identify_baseline
+    from bench.family import simulate
+
+    return identify_baseline([simulate(drive, {}, BASE_LOAD, seconds, seed=100 + j) for j in range(4)], prof,
+                             window_s=min(0.5, seconds / 2))
+
+
+def test_records(drive, hidden: dict, seconds: float, n: int = len(TEST_LOADS)) -> list:
+    """``n`` records with ``hidden`` effects at ``TEST_LOADS`` in turn (the first four are the set's own)."""
+    from bench.family import simulate
+
+    return [simulate(drive, hidden, TEST_LOADS[j % len(TEST_LOADS)], seconds, seed=200 + j) for j in range(n)]
+
+
 def run_drive(args: tuple) -> dict:
     """Everything for one drive: its baseline, the null set and (``with_effects``) one set per effect."""
     seed, seconds, with_effects, effects, timing, nameplate = args
-    from agent.baseline import identify_baseline
     from agent.workbench.explain import explain
     from agent.workbench.fitting import prepare
-    from bench.family import draw_drive, draw_effect, profile, revealable, simulate, truth
+    from bench.family import draw_drive, draw_effect, profile, revealable, truth
 
     t0 = time.perf_counter()
     drive = draw_drive(seed)
@@ -107,16 +136,16 @@ def run_drive(args: tuple) -> dict:
            "saliency": drive.lq_h / drive.ld_h, "rows": []}
     out["drive"]["saliency"] = out["saliency"]
     try:
-        base = identify_baseline([simulate(drive, {}, BASE_LOAD, seconds, seed=100 + j) for j in range(4)], prof,
-                                 window_s=min(0.5, seconds / 2))
+        base = baseline(drive, prof, seconds)
         sets = [("null", {})] + ([(e, {e: draw_effect(drive, e, seed)}) for e in effects] if with_effects else [])
         for name, hidden in sets:
-            recs = [simulate(drive, hidden, load, seconds, seed=200 + j) for j, load in enumerate(TEST_LOADS)]
+            recs = test_records(drive, hidden, seconds)
             doc = explain(base, prepare(recs, prof))
             if name == "null":
                 out["null"] = {"claims": [c["effect"] for c in doc["candidates"] if c["significant"]],
                                "answer": doc.get("note"), "nrmse_control": doc["nrmse_control"],
-                               "noise_floor": doc["noise_floor"]}
+                               "noise_floor": doc["noise_floor"], "records_named": records_named(doc),
+                               "candidates": candidates(doc)}
             else:
                 out["rows"].append(judge(doc, name, truth(drive, name, hidden[name], recs),
                                          revealable(drive, name, TEST_LOADS)))
@@ -227,7 +256,7 @@ def _more_records_named(row: dict) -> bool:
 
 
 def table(results: list, effects) -> str:
-    lines = ["| effect | drives | top-1 | significant (revealable) | first, not significant: records named | "
+    lines = ["| effect | drives | top-1 (of revealable) | significant (revealable) | first, not significant: records named | "
              "not revealable: said so | gain >= 2 (median) | parameter within 20 % (median error) | "
              "other effect claimed | misses concentrate at (Fisher) |",
              "|---|---|---|---|---|---|---|---|---|---|"]
@@ -240,6 +269,7 @@ def table(results: list, effects) -> str:
         top = sum(row["rank"] == 1 for _, row in rows)
         rev = [row for _, row in rows if row["revealable"]]
         sig = sum(row["significant"] for row in rev)
+        top_rev = sum(row["rank"] == 1 for row in rev)
         named = sum(_more_records_named(row) for row in rev)
         hidden = [row for _, row in rows if not row["revealable"]]
         said = sum(bool(row["answer"]) or (row["rank"] is not None and not row["significant"]) for row in hidden)
@@ -251,11 +281,12 @@ def table(results: list, effects) -> str:
         quiet = misses_by_attribute([(d, not row["significant"]) for d, row in rows if row["revealable"]])
         if quiet:
             unsure.append(f"{eff}: {'; '.join(quiet[:2])}")
-        lines.append(f"| {eff} | {n} | {top / n:.0%} | {sig}/{len(rev)} = {sig / max(len(rev), 1):.0%} | {named} | "
+        tops = f"{top / n:.0%} ({top_rev}/{len(rev)} = {top_rev / max(len(rev), 1):.0%})"
+        lines.append(f"| {eff} | {n} | {tops} | {sig}/{len(rev)} = {sig / max(len(rev), 1):.0%} | {named} | "
                      f"{said}/{len(hidden)} | {np.mean(np.array(gains) >= GAIN_MIN):.0%} ({np.median(gains):.3g}x) | "
                      f"{np.mean(np.array(errs) <= ERROR_MAX):.0%} of {len(errs)} ({np.median(errs):.0%}) | "
                      f"{len(wrong)} | {'; '.join(where[:2]) or '-'} |" if gains and errs else
-                     f"| {eff} | {n} | {top / n:.0%} | {sig}/{len(rev)} | {named} | {said}/{len(hidden)} | - | - | {len(wrong)} | "
+                     f"| {eff} | {n} | {tops} | {sig}/{len(rev)} | {named} | {said}/{len(hidden)} | - | - | {len(wrong)} | "
                      f"{'; '.join(where[:2]) or '-'} |")
     if unsure:
         lines += ["", "Not significant where the records can reveal it, concentrated at (Fisher's exact test, "

@@ -72,3 +72,30 @@ def test_the_table_counts_the_first_ranked_misses_whose_records_were_named():
                result(3, True, "")]
     line = next(x for x in table(results, ["current_offset"]).splitlines() if x.startswith("| current_offset"))
     assert line.split(" | ")[3:5] == ["1/3 = 33%", "1"], line
+
+
+def test_the_settle_check_takes_the_sets_with_records_named_and_counts_what_they_settled():
+    """bench.bench_settle reruns every set where explain named at most ``most`` records (effect and
+    null sets alike, the largest count of the set) and counts, per hidden effect, where it is now
+    significant (and among the sets where it had been first), and every other effect claimed; on a
+    null set every claim is another effect's."""
+    from bench.bench_settle import named_sets, table
+
+    def row(effect, rank, named):
+        return {"effect": effect, "rank": rank, "records_named": named}
+
+    results = [{"seed": 1, "null": {"records_named": {"voltage_delay": 6}},
+                "rows": [row("current_offset", 1, {"current_offset": 5, "voltage_delay": 7}),
+                         row("resistance_drift", 2, {"resistance_drift": 30})]},
+               {"seed": 2, "null": {"records_named": {}}, "rows": [row("current_offset", 3, {"current_offset": 9})]}]
+    named = named_sets(results, most=12)
+    assert sorted(named) == [(1, "current_offset", 7), (1, "null", 6), (2, "current_offset", 9)]
+    first = {(1, "current_offset"): True, (2, "current_offset"): False}
+    done = {(1, "current_offset"): {"claims": ["current_offset"]},
+            (2, "current_offset"): {"claims": ["magnetic_saturation"]},
+            (1, "null"): {"claims": ["voltage_delay"]}}
+    lines = table(named, done, first).splitlines()
+    offset = next(x for x in lines if x.startswith("| current_offset"))
+    assert offset.strip("| ").split(" | ")[1:5] == ["2 (1)", "9 (7-9)", "1 of 2 (1 of 1)", "1 (2: magnetic_saturation)"], offset
+    null = next(x for x in lines if x.startswith("| null"))
+    assert null.strip("| ").split(" | ")[3:5] == ["-", "1 (1: voltage_delay)"], null

@@ -351,11 +351,10 @@ def records_needed(ctrl: dict, cand: dict, alpha: float, most: int = 40) -> int 
 SETTLED_BY = "records like these would settle it"
 
 
-def too_few_note(ctrl: dict, cand: dict, alpha: float, p: float) -> str:
+def too_few_note(ctrl: dict, cand: dict, alpha: float, p: float, more: int | None) -> str:
     """Why a candidate that explains enough is not significant at ``alpha`` (its :func:`block_p`
-    is ``p``), and how many records like these would make it so (:func:`records_needed`)."""
+    is ``p``), and how many records like these would make it so (``more``: :func:`records_needed`)."""
     shares = [float(np.mean(x)) for x in _block_shares(ctrl, cand)]
-    more = records_needed(ctrl, cand, alpha)
     return (f"not significant with these {len(shares)} records (p = {p:.2g}, Holm needs < "
             f"{alpha:.2g}): its share of the error is {min(shares):.0%} to {max(shares):.0%} between records; "
             + (f"about {more} {SETTLED_BY} if it is as large as measured" if more else
@@ -702,8 +701,9 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
     for row, h in zip(rows, held):
         if row["significant"] or row["p_value"] >= 1.0:
             continue
-        if _claimable(row):
-            why = too_few_note(h_ctrl, h, level, row["p_value"])
+        if _claimable(row) and row["p_value"] >= level:  # below it, Holm passed it and its note says why it is not claimed
+            row["records_needed"] = records_needed(h_ctrl, h, level)
+            why = too_few_note(h_ctrl, h, level, row["p_value"], row["records_needed"])
         elif _too_small(row):
             why = too_small_note(row["explained_fraction"], floor_ratio(h_ctrl), row["p_value"], level)
         else:
