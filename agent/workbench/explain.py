@@ -357,7 +357,8 @@ def too_few_note(ctrl: dict, cand: dict, alpha: float, p: float, more: int | Non
     shares = [float(np.mean(x)) for x in _block_shares(ctrl, cand)]
     return (f"not significant with these {len(shares)} records (p = {p:.2g}, Holm needs < "
             f"{alpha:.2g}): its share of the error is {min(shares):.0%} to {max(shares):.0%} between records; "
-            + (f"about {more} {SETTLED_BY} if it is as large as measured" if more else
+            + (f"about {more} {SETTLED_BY} if it is as large as measured (they would test its share of the error, "
+               f"not that this effect is what leaves it)" if more else
                "more records like these would not settle it"))
 
 
