@@ -114,7 +114,7 @@ def baseline(drive, prof, seconds: float):
                              window_s=min(0.5, seconds / 2))
 
 
-def test_records(drive, hidden: dict, seconds: float, n: int = len(TEST_LOADS)) -> list:
+def hidden_records(drive, hidden: dict, seconds: float, n: int = len(TEST_LOADS)) -> list:
     """``n`` records with ``hidden`` effects at ``TEST_LOADS`` in turn (the first four are the set's own)."""
     from bench.family import simulate
 
@@ -139,7 +139,7 @@ def run_drive(args: tuple) -> dict:
         base = baseline(drive, prof, seconds)
         sets = [("null", {})] + ([(e, {e: draw_effect(drive, e, seed)}) for e in effects] if with_effects else [])
         for name, hidden in sets:
-            recs = test_records(drive, hidden, seconds)
+            recs = hidden_records(drive, hidden, seconds)
             doc = explain(base, prepare(recs, prof))
             if name == "null":
                 out["null"] = {"claims": [c["effect"] for c in doc["candidates"] if c["significant"]],
@@ -249,10 +249,8 @@ def is_miss(row: dict) -> bool:
 
 def _more_records_named(row: dict) -> bool:
     """Ranked first but not significant, and explain said how many records like these would settle
-    it (its test's power, not the fit, is short: :func:`agent.workbench.explain.too_few_note`)."""
-    from agent.workbench.explain import SETTLED_BY
-
-    return row["rank"] == 1 and not row["significant"] and SETTLED_BY in (row.get("note") or "")
+    it (its ``records_needed``: the test's power, not the fit, is short)."""
+    return row["rank"] == 1 and not row["significant"] and (row.get("records_named") or {}).get(row["effect"]) is not None
 
 
 def table(results: list, effects) -> str:

@@ -1,16 +1,17 @@
 """Are the records explain names the records that settle it? A check of its forecast on the drive family.
 
-    python -m bench.bench_settle [--most N] [--jobs J] [--results FILE]
+    python -m bench.bench_settle [--seconds S] [--most N] [--jobs J]
 
 Where a candidate explains enough but misses Holm's level, explain says how many records like these
 would settle it (``records_needed``, a forecast at the measured size). This takes every such set of
-``bench.bench_family``'s results (effect and null sets; the largest count named in the set, up to
-``--most``), records that many records like the set's (its own four, then more at the same loads in
-turn, fresh noise, the same hidden effect) and runs ``model explain`` on them against the same
-baseline. Per set: whether the hidden effect is now significant, and what else is claimed; on a
-null set every claim is a false one. Results are appended per set to
-bench/results/settle_<S>s.jsonl (a rerun resumes); the markdown table goes to stdout
-(docs/benchmarks.md, "Workbench on a family of random drives").
+``bench.bench_family``'s results for the documented workflow (bench/results/family_<S>s.jsonl: the
+drive's voltage path stated, no nameplate; effect and null sets; the largest count named in the set,
+up to ``--most``), records that many records like the set's (its own four, then more at the same
+loads in turn, fresh noise, the same hidden effect) and runs ``model explain`` on them against the
+same baseline. Per set: whether the hidden effect is now significant, and what else is claimed; on
+a null set every claim is a false one. Results are appended per set to
+bench/results/settle_<S>s.jsonl (a rerun resumes, unless the family's results are newer); the
+markdown table goes to stdout (docs/benchmarks.md, "Workbench on a family of random drives").
 """
 
 from __future__ import annotations
@@ -52,7 +53,7 @@ def run_set(args: tuple) -> dict:
         drive = draw_drive(seed)
         prof = profile(drive, nameplate=False, timing=True)
         hidden = {} if name == "null" else {name: draw_effect(drive, name, seed)}
-        doc = explain(family.baseline(drive, prof, seconds), prepare(family.test_records(drive, hidden, seconds, n),
+        doc = explain(family.baseline(drive, prof, seconds), prepare(family.hidden_records(drive, hidden, seconds, n),
                                                                      prof))
         out["claims"] = [c["effect"] for c in doc["candidates"] if c["significant"]]
         out["answer"] = doc.get("note")
@@ -74,13 +75,12 @@ def table(named: list[tuple], done: dict, first: dict) -> str:
         by.setdefault(name, []).append((seed, n))
     for name in sorted(by, key=lambda k: (k == "null", k)):
         counts = sorted(n for _, n in by[name])
-        ran = [(seed, done[(seed, name)]) for seed, _ in by[name] if "error" not in done.get((seed, name), {"error": 1})]
-        tops = {seed for seed, _ in by[name] if first.get((seed, name))}
-        hit = [seed for seed, d in ran if name in d["claims"]]
-        other = [f"{seed}: {', '.join(c for c in d['claims'] if c != name)}" for seed, d in ran
+        ran = {seed: done[(seed, name)] for seed, _ in by[name] if "claims" in done.get((seed, name), {})}
+        tops = {seed for seed, _ in by[name] if first.get((seed, name))} & set(ran)
+        hit = {seed for seed, d in ran.items() if name in d["claims"]}
+        other = [f"{seed}: {', '.join(c for c in d['claims'] if c != name)}" for seed, d in ran.items()
                  if any(c != name for c in d["claims"])]
-        found = "-" if name == "null" else (f"{len(hit)} of {len(ran)} ({len(tops & set(hit))} of "
-                                             f"{len(tops & {seed for seed, _ in ran})})")
+        found = "-" if name == "null" else f"{len(hit)} of {len(ran)} ({len(hit & tops)} of {len(tops)})"
         lines.append(f"| {name} | {len(counts)} ({len(tops)}) | {counts[len(counts) // 2]} ({counts[0]}-{counts[-1]}) | "
                      f"{found} | {len(other)}{' (' + '; '.join(other) + ')' if other else ''} |")
     errors = [d for d in done.values() if "error" in d]
@@ -91,19 +91,28 @@ def table(named: list[tuple], done: dict, first: dict) -> str:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--results", default=str(family.RESULTS / "family_1s.jsonl"), help="bench_family's results")
+    p.add_argument("--seconds", type=float, default=1.0, help="record length of the family run, s (default 1.0)")
     p.add_argument("--most", type=int, default=12, help="sets naming more records than this are left (default 12)")
     p.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
     a = p.parse_args(argv)
-    src = Path(a.results)
+    if a.most < 1 or a.jobs < 1:
+        p.error("--most and --jobs must be >= 1")
+    seconds = a.seconds
+    src = family.RESULTS / f"family_{seconds:g}s.jsonl"  # as bench_family names the documented workflow's
     if not src.exists():
-        p.error(f"--results: {src} does not exist (run python -m bench.bench_family first)")
+        p.error(f"{src} does not exist (run python -m bench.bench_family --seconds {seconds:g} first)")
     results = [json.loads(line) for line in src.read_text().splitlines()]
-    seconds = 1.0 if "_1s" in src.name else float(src.stem.split("_")[1].rstrip("s"))
+    other = next((r["seed"] for r in results if not r.get("timing", True) or r.get("nameplate")), None)
+    if other is not None:
+        p.error(f"{src}: drive {other} was run with another profile (reported voltage or nameplate) than the "
+                f"documented workflow this reruns")
     named = named_sets(results, a.most)
     first = {(r["seed"], row["effect"]): row["rank"] == 1 for r in results for row in r["rows"]}
     out = family.RESULTS / f"settle_{seconds:g}s.jsonl"
     done = {}
+    if out.exists() and out.stat().st_mtime < src.stat().st_mtime:  # its sets may be another run's
+        print(f"settle: {src.name} is newer than {out.name}: every set is run again", file=sys.stderr, flush=True)
+        out.unlink()
     if out.exists():
         for line in out.read_text().splitlines():
             d = json.loads(line)

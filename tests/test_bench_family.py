@@ -53,25 +53,21 @@ def test_misses_are_grouped_by_the_attribute_that_concentrates_them():
 
 
 def test_the_table_counts_the_first_ranked_misses_whose_records_were_named():
-    """A first-ranked, revealable, not significant effect for which explain said how many records
-    like these would settle it counts in its own column; one it said nothing of, or a significant
-    one, does not."""
-    from agent.workbench.explain import SETTLED_BY
+    """A first-ranked, revealable, not significant effect for which explain named how many records
+    like these would settle it counts in its own column; one it named none for (records would not
+    settle it, or another cause), one named for another candidate, or a significant one, do not."""
     from bench.bench_family import ATTRIBUTES, table
 
-    def result(seed, significant, note):
+    def result(seed, significant, named):
         row = {"effect": "current_offset", "rank": 1, "revealable": True, "significant": significant,
-               "answer": None, "gain": 3.0, "error": 0.1, "wrong_claims": [], "note": note}
+               "answer": None, "gain": 3.0, "error": 0.1, "wrong_claims": [], "note": "", "records_named": named}
         return {"seed": seed, "drive": {k: "x" for k in ATTRIBUTES}, "rows": [row],
                 "null": {"claims": [], "answer": None}}
 
-    results = [result(1, False, "not significant with these 4 records (p = 0.002, Holm needs < 0.0013): its share "
-                                f"of the error is 36% to 76% between records; about 5 {SETTLED_BY} if it is as large "
-                                "as measured"),
-               result(2, False, "at bound: the fit wants it beyond its physical range"),
-               result(3, True, "")]
+    results = [result(1, False, {"current_offset": 5}), result(2, False, {"current_offset": None}),
+               result(3, False, {"voltage_delay": 6}), result(4, True, {})]
     line = next(x for x in table(results, ["current_offset"]).splitlines() if x.startswith("| current_offset"))
-    assert line.split(" | ")[3:5] == ["1/3 = 33%", "1"], line
+    assert line.split(" | ")[3:5] == ["1/4 = 25%", "1"], line
 
 
 def test_the_settle_check_takes_the_sets_with_records_named_and_counts_what_they_settled():
