@@ -31,6 +31,7 @@ import argparse
 import json
 import multiprocessing
 import os
+import re
 import sys
 import time
 import traceback
@@ -72,6 +73,43 @@ def parameter_error(effect: str, fitted: dict, true: dict) -> float | None:
     return max(errs) if errs else None
 
 
+PHASE_MAX = 0.2  #: rad: a harmonic's phase said further off than this is wrong, as a magnitude 20 % off
+HARMONIC_KEY = re.compile(r"^(psi|phase)_(\d+)_(Wb|rad)$")
+
+
+def figure_errors(said: dict, true: dict, bound: dict | None = None) -> dict:
+    """Every figure explain said (not None) that the truth has, key -> (error, outside): its error
+    on ``parameter_error``'s scale (wrong above ``ERROR_MAX``), relative for a magnitude, a delay's
+    (and its sum with the advance, ``rotation_samples``) against max(|d|, 1 sample), a harmonic's
+    phase as a share of ``PHASE_MAX`` times ``ERROR_MAX`` (a harmonic's figures only where it is at
+    least a fifth of the largest: a smaller one's phase measures nothing); and whether the truth lies
+    outside the bound explain gave (``bound``: its ``params_bound``; None where it gave none)."""
+    out = {}
+    bound = bound or {}
+    amps = [v for k, v in true.items() if (m := HARMONIC_KEY.match(k)) and m[1] == "psi"]
+    for key, value in said.items():
+        if value is None:
+            continue
+        if key in ("delay_samples", "advance_samples", "rotation_samples"):
+            t = (true.get("delay_samples", 0.0) + true.get("advance_samples", 0.0) if key == "rotation_samples"
+                 else true.get(key))
+            if t is None:
+                continue
+            off, err = abs(value - t), abs(value - t) / max(abs(t), 1.0)
+        elif m := HARMONIC_KEY.match(key):
+            if key not in true or true.get(f"psi_{m[2]}_Wb", 0.0) < 0.2 * max(amps, default=0.0):
+                continue
+            off = abs(float(np.angle(np.exp(1j * (value - true[key]))))) if m[1] == "phase" else abs(value - true[key])
+            err = off / PHASE_MAX * ERROR_MAX if m[1] == "phase" else off / abs(true[key])
+        elif isinstance(true.get(key), float) and true[key] != 0.0:
+            off = abs(value - true[key])
+            err = off / abs(true[key])
+        else:
+            continue
+        out[key] = (err, None if bound.get(key) is None else bool(off > bound[key]))
+    return out
+
+
 def judge(doc: dict, effect: str, true: dict, revealable: tuple[bool, str]) -> dict:
     """One drive's figures for one hidden effect from explain's document."""
     rows = doc["candidates"]
@@ -88,7 +126,8 @@ def judge(doc: dict, effect: str, true: dict, revealable: tuple[bool, str]) -> d
     fitted = {**(row.get("unpinned_params") or {}), **{k: v for k, v in row["params"].items() if v is not None}}
     gain = (min(wrong) / max(row["nrmse_after"], 1e-12)) if wrong and row["nrmse_after"] is not None else None
     return {**out, "rank": names.index(effect) + 1, "top": names[0], "significant": bool(row["significant"]),
-            "p_value": row["p_value"], "gain": gain, "fitted": fitted,
+            "p_value": row["p_value"], "gain": gain, "fitted": fitted, "said": dict(row["params"]),
+            "bound": row.get("params_bound"),
             "error": parameter_error(effect, {k: v for k, v in row["params"].items()}, true),
             "identifiable": bool(row["identifiable"]), "note": row.get("note", "")}
 
@@ -256,8 +295,8 @@ def _more_records_named(row: dict) -> bool:
 def table(results: list, effects) -> str:
     lines = ["| effect | drives | top-1 (of revealable) | significant (revealable) | first, not significant: records named | "
              "not revealable: said so | gain >= 2 (median) | parameter within 20 % (median error) | "
-             "other effect claimed | misses concentrate at (Fisher) |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "figures said in claims: off > 20 % (outside their bound) | other effect claimed | misses concentrate at (Fisher) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     wrong_all, unsure = [], []
     for eff in effects:
         rows = [({**r["drive"], "seed": r["seed"]}, row) for r in results for row in r["rows"] if row["effect"] == eff]
@@ -270,21 +309,25 @@ def table(results: list, effects) -> str:
         top_rev = sum(row["rank"] == 1 for row in rev)
         named = sum(_more_records_named(row) for row in rev)
         hidden = [row for _, row in rows if not row["revealable"]]
-        said = sum(bool(row["answer"]) or (row["rank"] is not None and not row["significant"]) for row in hidden)
+        told = sum(bool(row["answer"]) or (row["rank"] is not None and not row["significant"]) for row in hidden)
         gains = [row["gain"] for _, row in rows if row["gain"] is not None]
         errs = [row["error"] for _, row in rows if row["error"] is not None]
         wrong = [(d, row) for d, row in rows if row["wrong_claims"]]
         wrong_all += [(eff, row["wrong_claims"], d["seed"]) for d, row in wrong]
         where = misses_by_attribute([(d, is_miss(row)) for d, row in rows])
+        said = [e for _, row in rows if row["significant"] and "said" in row
+                for e in figure_errors(row["said"], row["truth"], row.get("bound")).values()]
+        off = (f"{sum(e > ERROR_MAX for e, _ in said)} of {len(said)} "
+               f"({sum(bool(out) for e, out in said if e > ERROR_MAX)} outside their bound)" if said else "-")
         quiet = misses_by_attribute([(d, not row["significant"]) for d, row in rows if row["revealable"]])
         if quiet:
             unsure.append(f"{eff}: {'; '.join(quiet[:2])}")
         tops = f"{top / n:.0%} ({top_rev}/{len(rev)} = {top_rev / max(len(rev), 1):.0%})"
         lines.append(f"| {eff} | {n} | {tops} | {sig}/{len(rev)} = {sig / max(len(rev), 1):.0%} | {named} | "
-                     f"{said}/{len(hidden)} | {np.mean(np.array(gains) >= GAIN_MIN):.0%} ({np.median(gains):.3g}x) | "
-                     f"{np.mean(np.array(errs) <= ERROR_MAX):.0%} of {len(errs)} ({np.median(errs):.0%}) | "
+                     f"{told}/{len(hidden)} | {np.mean(np.array(gains) >= GAIN_MIN):.0%} ({np.median(gains):.3g}x) | "
+                     f"{np.mean(np.array(errs) <= ERROR_MAX):.0%} of {len(errs)} ({np.median(errs):.0%}) | {off} | "
                      f"{len(wrong)} | {'; '.join(where[:2]) or '-'} |" if gains and errs else
-                     f"| {eff} | {n} | {tops} | {sig}/{len(rev)} | {named} | {said}/{len(hidden)} | - | - | {len(wrong)} | "
+                     f"| {eff} | {n} | {tops} | {sig}/{len(rev)} | {named} | {told}/{len(hidden)} | - | - | {off} | {len(wrong)} | "
                      f"{'; '.join(where[:2]) or '-'} |")
     if unsure:
         lines += ["", "Not significant where the records can reveal it, concentrated at (Fisher's exact test, "

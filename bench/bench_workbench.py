@@ -285,6 +285,7 @@ def judge(doc: dict, effect: str, key: str, true: float, more: tuple[str, ...] =
             "gain": wrong / max(row["nrmse_after"], 1e-300), "key": key, "fitted": figures[key][0], "true": true,
             "more": {k: v for k, (v, _) in figures.items() if k != key},
             "error": error, "bound": row.get("at_bound", False),
+            "plus_minus": (row.get("params_bound") or {}).get(key),
             "identifiable": bool(row["identifiable"] and all(p for _, p in figures.values())),
             "note": row.get("note", "")}
 
@@ -313,7 +314,7 @@ def _fmt(x: float) -> str:
 
 def table(result: dict) -> str:
     lines = ["| simulator | hidden effect | top of explain | significant (p) | NRMSE control -> true (best wrong); "
-             "noise floor | gain | parameter: fitted (true), error |", "|---|---|---|---|---|---|---|"]
+             "noise floor | gain | parameter: fitted +- its bound (true), error |", "|---|---|---|---|---|---|---|"]
     for name, res in result["sims"].items():
         for r in res["rows"]:
             lines.append(f"| {name} | {r.get('scenario', r['effect'])} | {r['top']} (rank {r['rank']}) | "
@@ -321,6 +322,7 @@ def table(result: dict) -> str:
                          f"{_fmt(r['nrmse_after'])} ({_fmt(r['nrmse_best_wrong'])}); {'n/a' if r['noise_floor'] is None else _fmt(r['noise_floor'])} | "
                          f"{r['gain']:.3g}x | "
                          + (f"{r['key']} {r['fitted']:.4g}"
+                            + ("" if r.get("plus_minus") is None else f" +-{r['plus_minus']:.2g}")
                             + "".join(f", {k} {v:.4g}" for k, v in r.get("more", {}).items())
                             + f" ({r['true']:.4g}), {100 * r['error']:+.0f} %" if r['identifiable']
                             else f"{r['key']} not identifiable, not reported (the fit's value {r['fitted']:.4g}, "

@@ -70,6 +70,39 @@ def test_the_table_counts_the_first_ranked_misses_whose_records_were_named():
     assert line.split(" | ")[3:5] == ["1/4 = 25%", "1"], line
 
 
+def test_the_census_of_figures_said_counts_each_figure_against_its_truth_on_its_own_scale():
+    """figure_errors: a magnitude relative, a delay and its rotation against max(|d|, 1 sample), a
+    harmonic's phase against PHASE_MAX and only for a harmonic a fifth of the largest or more;
+    a figure not said (None) or without a truth is not counted; whether the truth is outside the
+    bound explain gave. The table counts the figures of significant claims only."""
+    import math
+
+    from bench.bench_family import ATTRIBUTES, ERROR_MAX, PHASE_MAX, figure_errors, table
+
+    true = {"psi_5_Wb": 0.01, "phase_5_rad": 3.1, "psi_7_Wb": 0.001, "phase_7_rad": 0.0,
+            "delay_samples": -1.5, "advance_samples": 0.5, "offset_A": 0.2}
+    said = {"psi_5_Wb": 0.013, "phase_5_rad": -3.1, "psi_7_Wb": 0.005, "phase_7_rad": 2.0, "delay_samples": -1.2,
+            "advance_samples": 0.5, "rotation_samples": -0.2, "offset_A": None, "lambda_H": 0.1}
+    err = figure_errors(said, true, {"psi_5_Wb": 0.002, "delay_samples": 0.5})
+    assert set(err) == {"psi_5_Wb", "phase_5_rad", "delay_samples", "advance_samples", "rotation_samples"}
+    assert math.isclose(err["psi_5_Wb"][0], 0.3) and err["psi_5_Wb"][1] is True  # 0.003 off, bound 0.002
+    assert math.isclose(err["phase_5_rad"][0], (2 * math.pi - 6.2) / PHASE_MAX * ERROR_MAX)  # across +-pi: 0.083 rad
+    assert math.isclose(err["delay_samples"][0], 0.3 / 1.5) and err["delay_samples"][1] is False
+    assert math.isclose(err["rotation_samples"][0], 0.8 / 1.0) and err["rotation_samples"][1] is None
+
+    def result(seed, significant, offset, bound=0.05):
+        row = {"effect": "current_offset", "rank": 1, "revealable": True, "significant": significant,
+               "answer": None, "gain": 3.0, "error": 0.1, "wrong_claims": [], "note": "", "records_named": {},
+               "truth": {"offset_A": 0.2}, "said": {"offset_A": offset}, "bound": {"offset_A": bound}}
+        return {"seed": seed, "drive": {k: "x" for k in ATTRIBUTES}, "rows": [row],
+                "null": {"claims": [], "answer": None}}
+
+    results = [result(1, True, 0.21), result(2, True, 0.1), result(3, True, 0.29, 0.1), result(4, True, None),
+               result(5, False, 0.5)]
+    line = next(x for x in table(results, ["current_offset"]).splitlines() if x.startswith("| current_offset"))
+    assert line.split(" | ")[8] == "2 of 3 (1 outside their bound)", line
+
+
 def test_the_settle_check_takes_the_sets_with_records_named_and_counts_what_they_settled():
     """bench.bench_settle reruns every set where explain named at most ``most`` records (effect and
     null sets alike, the largest count of the set) and counts, per hidden effect, where it is now

@@ -13,7 +13,7 @@ from agent.model import Signals
 from agent.records import Record
 from agent.simulator import simulate
 from agent.workbench.explain import add_effects, explain
-from agent.workbench.fitting import heldout, pinned_keys, prepare
+from agent.workbench.fitting import figure_bounds, heldout, pinned_keys, prepare
 from bench.workbench_evidence import GEAR, baseline
 
 SECONDS = 1.0
@@ -103,6 +103,26 @@ def test_figures_the_records_cannot_separate_are_not_pinned():
     assert got["rotation_samples"] and not got["delay_samples"] and not got["advance_samples"]
     free = {"kept": np.diag(typ ** 0 * 1e-2), "whole": np.diag(typ ** 0 * 1e-2), "i_norm": 1.0}
     assert all(pinned_keys(eff, np.array([0.5, 0.0, 0.2]), free, {"ts": 4e-5}).values())
+
+
+def test_a_figures_bound_is_the_larger_of_two_standard_errors_and_what_the_error_left_could_move():
+    """figure_bounds: U_dt's typical step (6 V) moves the free run's output by sqrt(kept) / i_norm;
+    an error of the model as large as what is left (an NRMSE), lying all along it, moves U_dt by
+    6 V x left / that. The one-step's two standard errors stand where larger; nothing bounds a
+    figure of the model's own effect or a setting read off the records (the sampled ripple)."""
+    eff = get("inverter_deadtime")
+    values = np.array([12.0])
+    seen = {"kept": np.array([[4e-6]]), "whole": np.array([[1e-5]]), "i_norm": 1.0, "left": 2e-3}
+    n = 2000
+    ctx = {"signals": [Signals.from_abc(np.ones((3, n)), np.sin(np.arange(3 * n).reshape(3, n)), np.zeros(n),
+                                       np.full(n, 100.0), 1e-4, 2)], "ts": 1e-4}
+    got = figure_bounds(eff, values, seen, ctx)
+    assert got["U_dt_V"] == pytest.approx(6.0 * 2e-3 / 2e-3) and got["ripple_A"] is None
+    assert figure_bounds(eff, values, {**seen, "cov": np.array([[25.0]])}, ctx)["U_dt_V"] == pytest.approx(10.0)
+    assert figure_bounds(eff, values, {**seen, "left": 0.0}, ctx)["U_dt_V"] == pytest.approx(6.0 * 5e-4 / 2e-3)
+    assert all(v is None for v in figure_bounds(eff, values, None, ctx).values())
+    # a one-step figure is bounded by the free run with it held ("run")
+    assert figure_bounds(eff, values, {"cov": np.array([[0.01]]), "run": seen}, ctx)["U_dt_V"] == pytest.approx(6.0)
 
 
 # --- flux harmonics: the 5th, the 7th and both ------------------------------------------------------

@@ -52,12 +52,15 @@ def model_terms(effect_ids) -> tuple[tuple, tuple]:
     return extra_d, extra_q
 
 
-def params_text(params: dict, sep: str = " ") -> str:
-    """An effect's reported parameters as text; "not identifiable" for one the records do not pin down
-    (its values are None, see :func:`agent.workbench.explain.reported`)."""
+def params_text(params: dict, sep: str = " ", bounds: dict | None = None) -> str:
+    """An effect's reported parameters as text, each with its bound (+-, where ``bounds`` gives
+    one); "not identifiable" for one the records do not pin down (its values are None, see
+    :func:`agent.workbench.explain.reported`)."""
     if params and all(v is None for v in params.values()):
         return "not identifiable"
-    return ", ".join(f"{k}{sep}{'n/a' if v is None else format(v, '.4g')}" for k, v in params.items())
+    bounds = bounds or {}
+    return ", ".join(f"{k}{sep}{'n/a' if v is None else format(v, '.4g')}"
+                     + ("" if v is None or bounds.get(k) is None else f" +-{bounds[k]:.2g}") for k, v in params.items())
 
 
 __all__ = ["EFFECTS", "MODULES", "Effect", "Param", "get", "model_terms", "params_text"]

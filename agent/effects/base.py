@@ -99,6 +99,9 @@ class Effect:
     #: why records prepared with this meta (:attr:`agent.workbench.fitting.Prepared.meta`) cannot show
     #: the effect at all, their measurement being what it is (and which records would), or None
     unseen: Callable[[dict], str | None] = lambda meta: None
+    #: why its size rests on a base value the records pin loosely (``phys``: the refit's base values,
+    #: ``prior``: the baseline's and the nameplate's, {key: (value, relative sd)}), or None
+    read_through: Callable[[dict, dict], str | None] = lambda phys, prior: None
     _cache: ByIdentity = field(default_factory=lambda: ByIdentity(8), compare=False, repr=False)
 
     def __post_init__(self):

@@ -6,12 +6,15 @@ Family: dv_x = -U_dt f(i_x) per phase, common mode removed (Clarke drops it), f 
 crossing. The knee is derived, not fitted: i_k is the record's own measured ripple, the rms of the
 phase currents about their operating level (:func:`ripple`, A).
 
-Degrees of freedom: U_dt (V, 0..0.1 v_rated). Reported: U_dt_V (headline) and knee_A (the records'
-mean knee). A fitted knee (a mix of this ramp and one at 15 % of the current amplitude) was tried:
-its soft part is a voltage proportional to the current near the crossings, which trades with R_s,
-and on the rig it took 3.7 V of a 10 V dead time and raised the plateau to 12 V; the measured
-ripple gives 9.4 V before the refit's inductance correction. A ripple the samples do not show (PWM
-ripple under synchronous sampling) is not in the knee.
+Degrees of freedom: U_dt (V, 0..0.1 v_rated). Reported: U_dt_V (headline) and ripple_A, the
+records' mean sampled ripple, to which the model's knee is set. That is a setting of the model, not
+a measurement of the loss's knee: the ripple the samples do not show (the PWM carrier's, under
+synchronous sampling) is not in it, and the knee of the true loss (bench.family's least-squares
+ramp) was 0.8-3.4 times the sampled ripple on six switched family drives. A fitted knee (a mix of
+this ramp and one at 15 % of the current amplitude) was tried: its soft part is a voltage
+proportional to the current near the crossings, which trades with R_s, and on the rig it took 3.7 V
+of a 10 V dead time and raised the plateau to 12 V; the measured ripple gives 9.4 V before the
+refit's inductance correction.
 """
 
 import numpy as np
@@ -33,7 +36,7 @@ def columns(sig):
 
 
 def report(v, ctx):
-    return {"U_dt_V": float(v[0]), "knee_A": float(np.mean([ripple(s) for s in ctx["signals"]]))}
+    return {"U_dt_V": float(v[0]), "ripple_A": float(np.mean([ripple(s) for s in ctx["signals"]]))}
 
 
 REVEALS = ("records whose voltage is the drive's command (sampling.voltage_source = \"reference\"): a measured "

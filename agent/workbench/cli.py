@@ -125,7 +125,7 @@ def cmd_explain(args) -> None:
               " (per block {:.0f} %, 95 % {:.0f}..{:.0f} %, {:.3g} effective samples)".format(
                   100 * size["share"], *(100 * x for x in size["share_ci95"]), size["n_eff"]))
         lines.append(f"  {r['effect']:22s} explains {share} %{ci}  NRMSE {_pct(r['nrmse_after'])}  {mark:16s} "
-                     + ("" if mark == "not identifiable" else params_text(r["params"])))
+                     + ("" if mark == "not identifiable" else params_text(r["params"], bounds=r.get("params_bound"))))
         if r.get("note") and (r["explained_fraction"] or 0.0) >= NOTE_SHARE:  # what the records cannot tell, and what would
             lines += textwrap.wrap(r["note"], 100, initial_indent=" " * 4, subsequent_indent=" " * 6)
     _emit(args, doc, "\n".join(lines))

@@ -36,8 +36,8 @@ from agent.effects.voltage_delay import MOVES, REACH, move_toward
 from agent.errors import InputError
 from agent.evidence import effective_size
 from agent.workbench.excitation import dynamics, no_dynamics_note, unfollowed_note
-from agent.workbench.fitting import (CONFLICT_SD, L_MAX_H, NONLINEAR, UNSEEN, Prepared, Refit, fit_cost, heldout,
-                                     moved_path, onto_rotor, pinned_keys, refit)
+from agent.workbench.fitting import (CONFLICT_SD, L_MAX_H, NONLINEAR, UNSEEN, Prepared, Refit, figure_bounds, fit_cost,
+                                     heldout, moved_path, onto_rotor, pinned_keys, refit)
 
 ALPHA = 0.01  #: family-wise significance level of the test over records
 MIN_RECORDS = 3  #: records needed for the test
@@ -254,8 +254,10 @@ def path_change(values, preps: list[Prepared], moved: list[Prepared]) -> np.ndar
 def reported(eid: str, r: Refit, ctx: dict) -> dict:
     """Effect ``eid``'s parameters as refit ``r`` reports them: ``params``, each figure where the
     records pin it down and None where they cannot (as identify reports base values), and then
-    ``unpinned_params``, the values the fit landed on for those, which measure nothing. An
-    identifiable effect whose records pin only some of its figures (a combination of its
+    ``unpinned_params``, the values the fit landed on for those, which measure nothing;
+    ``params_bound``, how far each figure given may be from what the records show
+    (:func:`agent.workbench.fitting.figure_bounds`: the channels' noise and the model error the refit
+    leaves), None where nothing bounds it. An identifiable effect whose records pin only some of its figures (a combination of its
     parameters) gets a ``note`` naming the others and the records that would separate them."""
     eff = get_effect(eid)
     values = eff.report(r.values[eid], ctx)
@@ -263,9 +265,11 @@ def reported(eid: str, r: Refit, ctx: dict) -> dict:
         return {"params": dict.fromkeys(values), "unpinned_params": values}
     pinned = pinned_keys(eff, r.values[eid], r.info.get(eid), ctx)
     loose = [k for k in values if not pinned[k]]
+    bound = figure_bounds(eff, r.values[eid], r.info.get(eid), ctx)
+    bounds = {k: None if k in loose else bound[k] for k in values}
     if not loose:
-        return {"params": values}
-    return {"params": {k: None if k in loose else v for k, v in values.items()},
+        return {"params": values, "params_bound": bounds}
+    return {"params": {k: None if k in loose else v for k, v in values.items()}, "params_bound": bounds,
             "unpinned_params": {k: values[k] for k in loose},
             "note": f"{', '.join(loose)} not separable from these records ("
                     + (f"reported: {', '.join(k for k in values if pinned[k])}" if len(loose) < len(values) else
@@ -660,6 +664,8 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
                **reported(eid, r, context(r, own.get(eid, preps), baseline.profile))}
         if not identifiable:
             row["note"] = unidentified_note(eid, how)
+        elif caveat := get_effect(eid).read_through(r.phys, prior):  # its size rests on a loosely pinned base value
+            row["note"] = "; ".join(filter(None, [row.get("note"), caveat]))
         elif get_effect(eid).negligible(path_change(r.values[eid], preps, own.get(eid)) if eid in own else r.values[eid]):
             row["negligible"] = True
             row["note"] = "; ".join(filter(None, [row.get("note"), (

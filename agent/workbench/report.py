@@ -168,7 +168,7 @@ def write_report(out_dir, title: str, doc: dict, data: dict, ranking: dict | Non
     if ranking:
         rank = "<h2>Effect ranking (held-out, against a refit without effects)</h2>" + _table(
             [[r["effect"], _pct(r["explained_fraction"]), _pct(r["nrmse_after"]), r["significant"], r["identifiable"],
-              params_text(r["params"], "="), r.get("note", "")]
+              params_text(r["params"], "=", r.get("params_bound")), r.get("note", "")]
              for r in ranking["candidates"]],
             ["effect", "explained %", "NRMSE after %", "significant", "identifiable", "parameters", "note"])
         rank = (f"<p>Held-out NRMSE of the model as it is: {_fmt(ranking['nrmse_before'])}; control (the model "
