@@ -960,8 +960,8 @@ def figure_bounds(effect, values: np.ndarray, info: dict | None, ctx: dict) -> d
     least ``VISIBLE_FLOOR``), lying all along that step, would move the figure by its typical
     change times left / part. A figure read by the one-step is bounded so too, by the free run
     with it held (``info["run"]``): a figure off by more would leave more than ``left`` unless the
-    base absorbed it. On the drive family's significant claims 105 of 122 free-run figures lay within their
-    bound of the truth, and 27 of the 40 that were more than 20 % off (bench/bench_family.py)."""
+    base absorbed it. On the drive family's significant claims the truth lay within the bound for
+    246 of 280 figures, and for 66 of the 92 more than 20 % off (bench/bench_family.py's census)."""
     values = np.asarray(values, dtype=float)
     typ = typical_sizes([effect])[effect.id]
     keys, grads = _figure_steps(effect, values, ctx)
