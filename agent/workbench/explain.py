@@ -664,13 +664,13 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
                **reported(eid, r, context(r, own.get(eid, preps), baseline.profile))}
         if not identifiable:
             row["note"] = unidentified_note(eid, how)
-        elif caveat := get_effect(eid).read_through(r.phys, prior):  # its size rests on a loosely pinned base value
-            row["note"] = "; ".join(filter(None, [row.get("note"), caveat]))
         elif get_effect(eid).negligible(path_change(r.values[eid], preps, own.get(eid)) if eid in own else r.values[eid]):
             row["negligible"] = True
             row["note"] = "; ".join(filter(None, [row.get("note"), (
                 "negligible: its fitted size is below what the base model's own approximations leave "
                 f"({params_floor(eid)}), so it is not claimed")]))
+        if identifiable and (caveat := get_effect(eid).read_through(r.phys, prior)):  # its size rests on a loose base value
+            row["note"] = "; ".join(filter(None, [row.get("note"), caveat]))
         if bound:
             row["note"] = "; ".join(filter(None, [get_effect(eid).at_bound or (
                 "at bound: the fit wants it beyond its physical range, so it is not this effect"), row.get("note")]))

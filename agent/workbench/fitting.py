@@ -46,7 +46,6 @@ from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 import numba
-
 import numpy as np
 import scipy.linalg
 import scipy.optimize
@@ -977,7 +976,7 @@ def figure_bounds(effect, values: np.ndarray, info: dict | None, ctx: dict) -> d
         if size > 0.0 and np.isfinite(size) and "kept" in seen:
             part = _least_kept(seen, g, size)[1]
             parts.append(size * max(VISIBLE_FLOOR, seen.get("left", 0.0)) / max(part, 1e-300))
-        out[key] = float(max(parts)) if parts else None
+        out[key] = float(max(parts)) if parts and np.isfinite(max(parts)) else None  # a diverged refit bounds nothing
     return out
 
 
