@@ -308,6 +308,7 @@ def test_one_load_saturation_is_reported_not_identifiable(base80):
     assert params_text(sat["params"]) == "not identifiable"
     _, fig = add_effects(base80, prepare(recs, GEAR), ["magnetic_saturation"])
     assert set(fig["params"]["magnetic_saturation"].values()) == {None}
+    assert fig["params_bound"]["magnetic_saturation"] is None  # no figure, no bound
     assert any(w.startswith("magnetic_saturation: not identifiable") for w in fig["warnings"])
 
 
@@ -451,7 +452,10 @@ def delay_baselines():
     clean = identify_baseline([simulate(GEAR, "healthy", 80.0, 2.0, seed=500 + j) for j in range(8)], GEAR,
                               window_s=1.0)
     hidden = identify_baseline(recs, GEAR, window_s=1.0)
-    ref, _ = add_effects(hidden, prepare(recs, GEAR), ["voltage_delay"])
+    ref, fig = add_effects(hidden, prepare(recs, GEAR), ["voltage_delay"])
+    # add-effect gives each figure with its bound, as explain does; the delay's holds the truth
+    said, bound = fig["params"]["voltage_delay"], fig["params_bound"]["voltage_delay"]
+    assert abs(said["delay_samples"] - 1.0) <= bound["delay_samples"]
     return clean, hidden, identify_baseline(recs, GEAR, window_s=1.0, model=ref.model)
 
 

@@ -156,7 +156,8 @@ def cmd_add_effect(args) -> None:
     warn_fault_evidence("model add-effect", findings)
     doc = {"model": str(args.out), "effect": effects[0] if len(effects) == 1 else effects,
            "nrmse_before": fig["nrmse_before"], "nrmse_after": fig["nrmse_after"],
-           "nrmse_control": fig["nrmse_control"], "params": fig["params"], "base": fig["base"],
+           "nrmse_control": fig["nrmse_control"], "params": fig["params"], "params_bound": fig["params_bound"],
+           "base": fig["base"],
            "version": entry["version"], "parent": str(args.model), "warnings": fig["warnings"],
            "thresholds": thresholds, "accepted_fault_evidence": findings,
            "th3_change": float((new.thresholds.th3.mean() / base.thresholds.th3.mean()) - 1)
@@ -164,7 +165,8 @@ def cmd_add_effect(args) -> None:
     _emit(args, doc, (f"wrote {args.out} (version {entry['version']}, effects {', '.join(entry['effects'])})\n"
                       f"held-out free-run NRMSE beyond the noise floor: before {_pct(fig['nrmse_before'])}, control "
                       f"{_pct(fig['nrmse_control'])}, with {'+'.join(effects)} {_pct(fig['nrmse_after'])}\n"
-                      + "\n".join(f"  {e}: {params_text(p)}" for e, p in fig["params"].items())
+                      + "\n".join(f"  {e}: {params_text(p, bounds=fig['params_bound'].get(e))}"
+                                  for e, p in fig["params"].items())
                       + f"\nthresholds and cluster: {thresholds['action']} ({thresholds['reason']})"
                       + (f"; {thresholds['note']}" if "note" in thresholds else "")))
 

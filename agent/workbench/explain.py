@@ -794,12 +794,14 @@ def add_effects(baseline, preps: list[Prepared], effect_ids) -> tuple[object, di
     r = nested(ctrl, preps, new, base, prior)
     ctx = context(r, preps, baseline.profile)
     h_before, h_ctrl, h_after = heldout(model, preps), heldout(ctrl.model, preps), heldout(r.model, preps)
+    said = {e: reported(e, r, ctx) for e in have + new}
     figures = {"nrmse_before": _total(h_before), "nrmse_control": _total(h_ctrl), "nrmse_after": _total(h_after),
-               "params": {e: reported(e, r, ctx)["params"] for e in have + new},
+               "params": {e: said[e]["params"] for e in have + new},
+               "params_bound": {e: said[e].get("params_bound") for e in have + new},
                "at_bound": [e for e in new if r.at_bound.get(e)], "base": r.phys,
                "warnings": operating_warnings(baseline, preps)}
     for e in have + new:
-        note = reported(e, r, ctx).get("note")
+        note = said[e].get("note")
         if r.identifiable[e][0] and note:
             figures["warnings"].append(f"{e}: {note}")
         if not r.identifiable[e][0]:
