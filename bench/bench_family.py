@@ -58,28 +58,13 @@ ATTRIBUTES = ("inverter", "voltage_hold", "computation_delay", "angle_compensati
 GAIN_MIN, ERROR_MAX = 2.0, 0.20
 
 
-def parameter_error(effect: str, fitted: dict, true: dict) -> float | None:
-    """The headline error: the largest relative error over the headline keys whose true value is
-    at least a fifth of the largest (a mix of harmonics: each one that matters); a delay's error
-    relative to max(|d|, 1 sample). None where the effect reports no value (not identifiable)."""
-    keys = HEADLINE[effect]
-    if any(fitted.get(k) is None for k in keys):
-        return None
-    if effect == "voltage_delay":
-        d = true["delay_samples"]
-        return abs(fitted["delay_samples"] - d) / max(abs(d), 1.0)
-    big = max(abs(true.get(k, 0.0)) for k in keys)
-    errs = [abs(fitted[k] / true[k] - 1.0) for k in keys if abs(true.get(k, 0.0)) >= 0.2 * big and big > 0]
-    return max(errs) if errs else None
-
-
 PHASE_MAX = 0.2  #: rad: a harmonic's phase said further off than this is wrong, as a magnitude 20 % off
 HARMONIC_KEY = re.compile(r"^(psi|phase)_(\d+)_(Wb|rad)$")
 
 
 def figure_errors(said: dict, true: dict, bound: dict | None = None) -> dict:
     """Every figure explain said (not None) that the truth has, key -> (error, outside): its error
-    on ``parameter_error``'s scale (wrong above ``ERROR_MAX``), relative for a magnitude, a delay's
+    (wrong above ``ERROR_MAX``), relative for a magnitude, a delay's
     (and its sum with the advance, ``rotation_samples``) against max(|d|, 1 sample), a harmonic's
     phase as a share of ``PHASE_MAX`` times ``ERROR_MAX`` (a harmonic's figures only where it is at
     least a fifth of the largest: a smaller one's phase measures nothing); and whether the truth lies
@@ -108,6 +93,16 @@ def figure_errors(said: dict, true: dict, bound: dict | None = None) -> dict:
             continue
         out[key] = (err, None if bound.get(key) is None else bool(off > bound[key]))
     return out
+
+
+def parameter_error(effect: str, fitted: dict, true: dict) -> float | None:
+    """The headline error: the largest of :func:`figure_errors` over the effect's headline keys (a
+    mix of harmonics: each one at least a fifth of the largest; a delay against max(|d|, 1 sample)).
+    None where the effect reports no value (not identifiable)."""
+    keys = HEADLINE[effect]
+    if any(fitted.get(k) is None for k in keys):
+        return None
+    return max((e for e, _ in figure_errors({k: fitted[k] for k in keys}, true).values()), default=None)
 
 
 def judge(doc: dict, effect: str, true: dict, revealable: tuple[bool, str]) -> dict:

@@ -13,7 +13,7 @@ from agent.model import Signals
 from agent.records import Record
 from agent.simulator import simulate
 from agent.workbench.explain import add_effects, explain
-from agent.workbench.fitting import figure_bounds, heldout, pinned_keys, prepare
+from agent.workbench.fitting import heldout, judge_figures, prepare
 from bench.workbench_evidence import GEAR, baseline
 
 SECONDS = 1.0
@@ -91,7 +91,7 @@ def test_delay_columns_split_a_signed_delay_and_report_it():
 
 
 def test_figures_the_records_cannot_separate_are_not_pinned():
-    """pinned_keys: three collinear columns pin only their sum (the delay's rotation at constant
+    """judge_figures: three collinear columns pin only their sum (the delay's rotation at constant
     speed), not the delay and the advance apart; an independent set pins each."""
     eff = get("voltage_delay")
     typ = np.array([p.typical for p in eff.params])
@@ -99,14 +99,14 @@ def test_figures_the_records_cannot_separate_are_not_pinned():
     resp = np.array([1.0, -1.0, 1.0]) * typ * 0.1
     gram = np.outer(resp, resp) + 1e-12 * np.eye(3)
     info = {"kept": gram, "whole": gram, "i_norm": 1.0}
-    got = pinned_keys(eff, np.array([0.5, 0.0, 0.2]), info, {"ts": 4e-5})
+    got = {k: p for k, (p, _) in judge_figures(eff, np.array([0.5, 0.0, 0.2]), info, {"ts": 4e-5}).items()}
     assert got["rotation_samples"] and not got["delay_samples"] and not got["advance_samples"]
     free = {"kept": np.diag(typ ** 0 * 1e-2), "whole": np.diag(typ ** 0 * 1e-2), "i_norm": 1.0}
-    assert all(pinned_keys(eff, np.array([0.5, 0.0, 0.2]), free, {"ts": 4e-5}).values())
+    assert all(p for p, _ in judge_figures(eff, np.array([0.5, 0.0, 0.2]), free, {"ts": 4e-5}).values())
 
 
 def test_a_figures_bound_is_the_larger_of_two_standard_errors_and_what_the_error_left_could_move():
-    """figure_bounds: U_dt's typical step (6 V) moves the free run's output by sqrt(kept) / i_norm;
+    """judge_figures' bound: U_dt's typical step (6 V) moves the free run's output by sqrt(kept) / i_norm;
     an error of the model as large as what is left (an NRMSE), lying all along it, moves U_dt by
     6 V x left / that. The one-step's two standard errors stand where larger; nothing bounds a
     figure of the model's own effect or a setting read off the records (the sampled ripple)."""
@@ -116,13 +116,17 @@ def test_a_figures_bound_is_the_larger_of_two_standard_errors_and_what_the_error
     n = 2000
     ctx = {"signals": [Signals.from_abc(np.ones((3, n)), np.sin(np.arange(3 * n).reshape(3, n)), np.zeros(n),
                                        np.full(n, 100.0), 1e-4, 2)], "ts": 1e-4}
-    got = figure_bounds(eff, values, seen, ctx)
+
+    def bound(info):
+        return {k: b for k, (_, b) in judge_figures(eff, values, info, ctx).items()}
+
+    got = bound(seen)
     assert got["U_dt_V"] == pytest.approx(6.0 * 2e-3 / 2e-3) and got["ripple_A"] is None
-    assert figure_bounds(eff, values, {**seen, "cov": np.array([[25.0]])}, ctx)["U_dt_V"] == pytest.approx(10.0)
-    assert figure_bounds(eff, values, {**seen, "left": 0.0}, ctx)["U_dt_V"] == pytest.approx(6.0 * 5e-4 / 2e-3)
-    assert all(v is None for v in figure_bounds(eff, values, None, ctx).values())
+    assert bound({**seen, "cov": np.array([[25.0]])})["U_dt_V"] == pytest.approx(10.0)
+    assert bound({**seen, "left": 0.0})["U_dt_V"] == pytest.approx(6.0 * 5e-4 / 2e-3)
+    assert all(v is None for v in bound(None).values())
     # a one-step figure is bounded by the free run with it held ("run")
-    assert figure_bounds(eff, values, {"cov": np.array([[0.01]]), "run": seen}, ctx)["U_dt_V"] == pytest.approx(6.0)
+    assert bound({"cov": np.array([[0.01]]), "run": seen})["U_dt_V"] == pytest.approx(6.0)
 
 
 # --- flux harmonics: the 5th, the 7th and both ------------------------------------------------------

@@ -3,6 +3,7 @@ simulator records with hidden effects. ``PMSM_SLOW=full`` runs the per-effect su
 
 import json
 import os
+import re
 import shutil
 import subprocess
 from pathlib import Path
@@ -364,6 +365,13 @@ def test_workflow_compare_explain_add_effect_history(capsys, workflow):
     assert all(any("far from the model's" in w for w in doc["warnings"]) for doc in (comp, expl, add))
     assert add["nrmse_after"] < 0.6 * add["nrmse_control"] < add["nrmse_before"]
     assert add["params"]["current_offset"]["offset_A"] == pytest.approx(0.1, rel=0.2)
+    assert add["params_bound"]["current_offset"]["offset_A"] > 0  # each figure with its bound
+    # the text gives the bound after each figure and says once what it means
+    from agent.workbench.cli import BOUND_LEGEND
+
+    assert main(["model", "explain", "--model", model, *data]) == 0
+    text = capsys.readouterr().out
+    assert re.search(r"offset_A [0-9.]+ \+-[0-9.e-]+", text) and " ".join(BOUND_LEGEND.split()[:8]) in text
     hist = run_json(capsys, "model", "history", str(d / "m2.json"))
     assert [v["version"] for v in hist["versions"]] == [0, 1] and hist["effects"] == ["current_offset"]
     assert hist["versions"][1]["parent"] == model

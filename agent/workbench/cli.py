@@ -14,6 +14,9 @@ from pathlib import Path
 from agent.errors import InputError
 
 NOTE_SHARE = 0.01  #: explain's text shows the note of a candidate that explains at least this share
+#: what a figure's +- means in the text (``params_bound``, :func:`agent.workbench.fitting.judge_figures`)
+BOUND_LEGEND = ("+-: how far a figure may be from what the records show (the channels' noise, or the error the "
+                "refit leaves lying all along the figure's weakest direction): a worst case, not a confidence interval")
 
 log = logging.getLogger("pmsm-agent.model")
 
@@ -128,6 +131,8 @@ def cmd_explain(args) -> None:
                      + ("" if mark == "not identifiable" else params_text(r["params"], bounds=r.get("params_bound"))))
         if r.get("note") and (r["explained_fraction"] or 0.0) >= NOTE_SHARE:  # what the records cannot tell, and what would
             lines += textwrap.wrap(r["note"], 100, initial_indent=" " * 4, subsequent_indent=" " * 6)
+    if any(b is not None for r in doc["candidates"] for b in (r.get("params_bound") or {}).values()):
+        lines += textwrap.wrap(BOUND_LEGEND, 100, subsequent_indent="  ")
     _emit(args, doc, "\n".join(lines))
 
 
@@ -167,6 +172,7 @@ def cmd_add_effect(args) -> None:
                       f"{_pct(fig['nrmse_control'])}, with {'+'.join(effects)} {_pct(fig['nrmse_after'])}\n"
                       + "\n".join(f"  {e}: {params_text(p, bounds=fig['params_bound'].get(e))}"
                                   for e, p in fig["params"].items())
+                      + (f"\n{BOUND_LEGEND}" if any(b for b in fig["params_bound"].values()) else "")
                       + f"\nthresholds and cluster: {thresholds['action']} ({thresholds['reason']})"
                       + (f"; {thresholds['note']}" if "note" in thresholds else "")))
 

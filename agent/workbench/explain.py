@@ -36,8 +36,8 @@ from agent.effects.voltage_delay import MOVES, REACH, move_toward
 from agent.errors import InputError
 from agent.evidence import effective_size
 from agent.workbench.excitation import dynamics, no_dynamics_note, unfollowed_note
-from agent.workbench.fitting import (CONFLICT_SD, L_MAX_H, NONLINEAR, UNSEEN, Prepared, Refit, figure_bounds, fit_cost,
-                                     heldout, moved_path, onto_rotor, pinned_keys, refit)
+from agent.workbench.fitting import (CONFLICT_SD, L_MAX_H, NONLINEAR, UNSEEN, Prepared, Refit, fit_cost, heldout,
+                                     judge_figures, moved_path, onto_rotor, refit)
 
 ALPHA = 0.01  #: family-wise significance level of the test over records
 MIN_RECORDS = 3  #: records needed for the test
@@ -256,17 +256,17 @@ def reported(eid: str, r: Refit, ctx: dict) -> dict:
     records pin it down and None where they cannot (as identify reports base values), and then
     ``unpinned_params``, the values the fit landed on for those, which measure nothing;
     ``params_bound``, how far each figure given may be from what the records show
-    (:func:`agent.workbench.fitting.figure_bounds`: the channels' noise and the model error the refit
+    (:func:`agent.workbench.fitting.judge_figures`: the channels' noise and the model error the refit
     leaves), None where nothing bounds it. An identifiable effect whose records pin only some of its figures (a combination of its
     parameters) gets a ``note`` naming the others and the records that would separate them."""
     eff = get_effect(eid)
     values = eff.report(r.values[eid], ctx)
     if not r.identifiable[eid][0]:
         return {"params": dict.fromkeys(values), "unpinned_params": values}
-    pinned = pinned_keys(eff, r.values[eid], r.info.get(eid), ctx)
+    judged = judge_figures(eff, r.values[eid], r.info.get(eid), ctx)
+    pinned = {k: p for k, (p, _) in judged.items()}
     loose = [k for k in values if not pinned[k]]
-    bound = figure_bounds(eff, r.values[eid], r.info.get(eid), ctx)
-    bounds = {k: None if k in loose else bound[k] for k in values}
+    bounds = {k: None if k in loose else judged[k][1] for k in values}
     if not loose:
         return {"params": values, "params_bound": bounds}
     return {"params": {k: None if k in loose else v for k, v in values.items()}, "params_bound": bounds,

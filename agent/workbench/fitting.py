@@ -555,7 +555,7 @@ class Refit:
     cost: float
     identifiable: dict  #: effect id -> (bool, {how it was judged})
     at_bound: dict = field(default_factory=dict)  #: effect id -> whether a parameter sits on its physical bound
-    info: dict = field(default_factory=dict)  #: effect id -> what :func:`pinned_keys` judges its figures by
+    info: dict = field(default_factory=dict)  #: effect id -> what :func:`judge_figures` judges its figures by
 
 
 #: the judgement of an effect the records' measurement cannot show at all (:attr:`Effect.unseen`: a
@@ -852,7 +852,7 @@ def _unabsorbed(base: np.ndarray, s_all: np.ndarray, effs, i_norm: float, first:
     sensitivities to them) absorb least. The effect is identifiable when that combination keeps
     ``SHARE_FLOOR`` of its response and the part kept is at least ``VISIBLE_FLOOR`` of the measured
     current's norm (an NRMSE). effect id -> (identifiable, how, info): info is what
-    :func:`pinned_keys` needs to judge each reported figure, the unabsorbed and the whole
+    :func:`judge_figures` needs to judge each reported figure, the unabsorbed and the whole
     responses' Gram matrices per typical-size step and the current's norm."""
     q, _ = np.linalg.qr(base / np.maximum(np.linalg.norm(base, axis=0), 1e-300))
     out, j = {}, first
@@ -916,67 +916,52 @@ def _least_kept(seen: dict, g: np.ndarray, size: float) -> tuple[float, float]:
     return part / np.sqrt(max(float(u @ whole @ u), 1e-300)), part / seen["i_norm"]
 
 
-def pinned_keys(effect, values: np.ndarray, info: dict | None, ctx: dict) -> dict:
-    """Which of ``effect``'s reported figures the records pin down: key -> bool. A figure is
-    pinned by the one-step regression when its standard error (through its gradient in the
-    parameters) is at most ``PRECISION`` of its change over a typical-size step; by the free run
-    when the parameter step that changes it by that much with the least response left to the base
-    parameters keeps ``SHARE_FLOOR`` of its response, and a part at least ``VISIBLE_FLOOR`` of the
-    current and at least what the refit leaves on its fit segments beyond the channels' noise
-    (``left``, an NRMSE: a figure whose typical change
-    moves the output less than the remaining error is set by that error, model errors included:
-    motulator's delay at a load step read 1.39 samples with an advance of -0.43, its sum 0.96).
-    A figure that is no function of the fitted parameters (a setting read off the records) counts
-    as pinned. ``info``: :attr:`Refit.info`'s; without it (the model's own effect) every figure
-    counts as pinned."""
+def judge_figures(effect, values: np.ndarray, info: dict | None, ctx: dict) -> dict:
+    """Each of ``effect``'s reported figures: key -> (pinned, bound).
+
+    *Pinned*: whether the records pin it down. By the one-step regression when its standard error
+    (through its gradient in the parameters) is at most ``PRECISION`` of its change over a
+    typical-size step; by the free run when the parameter step that changes it by that much with
+    the least response left to the base parameters (:func:`_least_kept`) keeps ``SHARE_FLOOR`` of
+    its response, and a part at least ``VISIBLE_FLOOR`` of the current and at least what the refit
+    leaves on its fit segments beyond the channels' noise (``left``, an NRMSE: a figure whose
+    typical change moves the output less than the remaining error is set by that error, model
+    errors included: motulator's delay at a load step read 1.39 samples with an advance of -0.43,
+    its sum 0.96). A figure that is no function of the fitted parameters (a setting read off the
+    records) counts as pinned.
+
+    *Bound*: how far it may be from what the records show, in its own unit; None where nothing
+    bounds it (a setting, the model's own effect). The larger of two parts: the one-step
+    regression's two standard errors (the channels' noise), and the model's error: an error as
+    large as what the refit leaves (at least ``VISIBLE_FLOOR``), lying all along the least-kept
+    step, would move the figure by its typical change times left / part. A figure read by the
+    one-step is bounded so too, by the free run with it held (``info["run"]``): a figure off by
+    more would leave more than ``left`` unless the base absorbed it. A worst case for the error
+    left, not a confidence interval: on the drive family's significant claims the truth lay within
+    it for 246 of 280 figures, and for 66 of the 92 more than 20 % off (bench/bench_family.py).
+
+    ``info``: :attr:`Refit.info`'s; without it (the model's own effect) every figure counts as
+    pinned, with no bound."""
     values = np.asarray(values, dtype=float)
     typ = typical_sizes([effect])[effect.id]
     keys, grads = _figure_steps(effect, values, ctx)
     if not info:
-        return dict.fromkeys(keys, True)
+        return dict.fromkeys(keys, (True, None))
+    seen = info.get("run", info)  # the free run's Gram matrices: its own, or with a one-step figure held
     out = {}
     for key, g in zip(keys, grads):
         size = float(np.linalg.norm(g))  # the figure's change over a typical-size step along its gradient
         if size == 0.0 or not np.isfinite(size):
-            out[key] = size == 0.0
+            out[key] = (size == 0.0, None)
             continue
-        out[key] = False
-        if "cov" in info:  # the one-step regression's standard error
-            out[key] = bool(_one_step_se(info, typ, g) <= PRECISION * size)
-        if "kept" in info and not out[key]:  # the free run's unabsorbed response
-            share, part = _least_kept(info, g, size)
-            out[key] = bool(share >= SHARE_FLOOR and part >= max(VISIBLE_FLOOR, info.get("left", 0.0)))
-    return out
-
-
-def figure_bounds(effect, values: np.ndarray, info: dict | None, ctx: dict) -> dict:
-    """How far each of ``effect``'s reported figures may be from what the records show, in its own
-    unit: key -> the bound, or None where nothing bounds it (a setting read off the records, the
-    model's own effect). The larger of two parts: the one-step regression's two standard errors
-    (the channels' noise), and the model's error. The least-kept parameter step that moves the
-    figure by its typical change moves the free run's output by ``part`` (an NRMSE,
-    :func:`_least_kept`); an error of the model as large as what the refit leaves (``left``, at
-    least ``VISIBLE_FLOOR``), lying all along that step, would move the figure by its typical
-    change times left / part. A figure read by the one-step is bounded so too, by the free run
-    with it held (``info["run"]``): a figure off by more would leave more than ``left`` unless the
-    base absorbed it. On the drive family's significant claims the truth lay within the bound for
-    246 of 280 figures, and for 66 of the 92 more than 20 % off (bench/bench_family.py's census)."""
-    values = np.asarray(values, dtype=float)
-    typ = typical_sizes([effect])[effect.id]
-    keys, grads = _figure_steps(effect, values, ctx)
-    if not info:
-        return dict.fromkeys(keys)
-    seen = info.get("run", info)
-    out = {}
-    for key, g in zip(keys, grads):
-        size = float(np.linalg.norm(g))
-        parts = []
-        if size > 0.0 and np.isfinite(size) and "cov" in info:
-            parts.append(2.0 * _one_step_se(info, typ, g))
-        if size > 0.0 and np.isfinite(size) and "kept" in seen:
-            part = _least_kept(seen, g, size)[1]
-            parts.append(size * max(VISIBLE_FLOOR, seen.get("left", 0.0)) / max(part, 1e-300))
-        out[key] = float(max(parts)) if parts and np.isfinite(max(parts)) else None  # a diverged refit bounds nothing
+        se = _one_step_se(info, typ, g) if "cov" in info else None
+        share, part = _least_kept(seen, g, size) if "kept" in seen else (0.0, 0.0)
+        pinned = (se is not None and se <= PRECISION * size) or (
+            "kept" in info and share >= SHARE_FLOOR and part >= max(VISIBLE_FLOOR, info.get("left", 0.0)))
+        parts = ([2.0 * se] if se is not None else []) + (
+            [size * max(VISIBLE_FLOOR, seen.get("left", 0.0)) / max(part, 1e-300)] if "kept" in seen else [])
+        bound = max(parts, default=None)
+        out[key] = (bool(pinned), float(bound) if bound is not None and np.isfinite(bound) else None)
     return out
 
 

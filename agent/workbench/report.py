@@ -170,7 +170,8 @@ def write_report(out_dir, title: str, doc: dict, data: dict, ranking: dict | Non
             [[r["effect"], _pct(r["explained_fraction"]), _pct(r["nrmse_after"]), r["significant"], r["identifiable"],
               params_text(r["params"], "=", r.get("params_bound")), r.get("note", "")]
              for r in ranking["candidates"]],
-            ["effect", "explained %", "NRMSE after %", "significant", "identifiable", "parameters", "note"])
+            ["effect", "explained %", "NRMSE after %", "significant", "identifiable",
+             "parameters (+-: how far each may be from what the records show, a worst case)", "note"])
         rank = (f"<p>Held-out NRMSE of the model as it is: {_fmt(ranking['nrmse_before'])}; control (the model "
                 f"refitted without new effects, or itself if better): {_fmt(ranking['nrmse_control'])}</p>") + rank
     warn = "".join(f"<li class='warn'>{html.escape(w)}</li>" for w in doc.get("warnings", []))
