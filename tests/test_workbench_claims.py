@@ -440,9 +440,9 @@ def test_a_claim_is_withheld_where_an_unpinned_candidate_fits_clearly_better():
     or where the better one is itself claimable, the claim stands."""
     from agent.workbench.explain import _better_unclaimable
 
-    def row(effect, nrmse, identifiable=True, at_bound=False):
+    def row(effect, nrmse, identifiable=True, at_bound=False, stage="free run"):
         return {"effect": effect, "nrmse_after": nrmse, "identifiable": identifiable, "at_bound": at_bound,
-                "explained_fraction": 0.5}
+                "explained_fraction": 0.5, "identifiability": {"stage": stage}}
 
     first = row("flux_harmonics", 0.010)
     rival = row("inverter_deadtime", 0.0063, identifiable=False)
@@ -451,6 +451,10 @@ def test_a_claim_is_withheld_where_an_unpinned_candidate_fits_clearly_better():
     assert _better_unclaimable([first, row("inverter_deadtime", 0.009, identifiable=False)], first) is None
     assert _better_unclaimable([first, row("inverter_deadtime", 0.0063)], first) is None
     assert _better_unclaimable([first, rival], None) is None
+    # what the measurement cannot show is no rival (a dead time behind a measured voltage), unless it
+    # is the model's input itself (the voltage path behind a pulse-cutting window)
+    assert _better_unclaimable([first, row("inverter_deadtime", 0.0063, False, stage="unseen")], first) is None
+    assert _better_unclaimable([first, row("voltage_delay", 0.0063, False, stage="unseen")], first)["effect"] == "voltage_delay"
 
 
 def _shifted(shift: float) -> list:
@@ -502,8 +506,9 @@ def test_reproduced_share_of_one_effects_contribution_by_anothers_form(base80):
     assert ex.reproduced(fifth, "voltage", "current_offset", preps) == 0.0
 
 
-def _family_set(seed: int, effect: str):
-    """A family drive's baseline (four 80 % records) and its four records with ``effect`` hidden."""
+def _family_set(seed: int, effect: str | None):
+    """A family drive's baseline (four 80 % records) and its four records with ``effect`` hidden
+    (None: its null set)."""
     from bench.family import draw_drive, draw_effect, profile, simulate as family_simulate
     from agent.baseline import identify_baseline
 
@@ -511,7 +516,7 @@ def _family_set(seed: int, effect: str):
     prof = profile(drive, timing=True)
     base = identify_baseline([family_simulate(drive, {}, 80.0, 1.0, seed=100 + j) for j in range(4)], prof,
                              window_s=0.5)
-    hidden = {effect: draw_effect(drive, effect, seed)}
+    hidden = {effect: draw_effect(drive, effect, seed)} if effect else {}
     return drive, base, prepare([family_simulate(drive, hidden, load, 1.0, seed=200 + j)
                                  for j, load in enumerate((40.0, 60.0, 90.0, 100.0))], prof)
 
@@ -711,6 +716,22 @@ def test_a_sensor_offset_of_a_closed_loop_drive_is_read_through_the_refits_resis
     # a baseline or nameplate R_s that agrees with R_s,q leaves the figure standing; one that does not scales it
     assert through_resistance({"Rs_q": 1.0}, {"Rs": (1.1, 0.2)}) is None
     assert "may be 2.5 times the figure" in through_resistance({"Rs_q": 1.0}, {"Rs": (0.4, 0.2)})
+
+
+def test_nothing_is_claimed_where_the_voltage_path_behind_a_pulse_cutting_window_takes_the_error():
+    """A family null drive (20776: a switched inverter, its voltage measured through a window 0.23
+    sample late): the base leaves 30 times its noise floor, a change of the path (unseen behind the
+    window) takes all but 0.2 % of it, and a gain mismatch took 98.6 % and was claimed. Now nothing
+    is claimed, and the gain mismatch's note names the path and the records that would tell."""
+    _, base, preps = _family_set(20776, None)
+    doc = ex.explain(base, preps)
+    assert not any(c["significant"] for c in doc["candidates"])
+    gain = next(c for c in doc["candidates"] if c["effect"] == "current_gain_mismatch")
+    delay = next(c for c in doc["candidates"] if c["effect"] == "voltage_delay")
+    assert gain["p_value"] < 1e-4 and (gain["explained_fraction"] or 0.0) > 0.9  # it would have been claimed
+    assert delay["identifiability"]["stage"] == "unseen" and delay["nrmse_after"] < 0.8 * gain["nrmse_after"]
+    assert "not claimed: voltage_delay fits the held-out records better" in gain["note"]
+    assert "cuts the PWM pulses" in gain["note"] and "sampling.voltage_source" in gain["note"]
 
 
 def test_a_candidate_holm_passes_but_that_is_not_claimed_is_not_said_to_need_more_records():

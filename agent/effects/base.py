@@ -99,6 +99,9 @@ class Effect:
     #: why records prepared with this meta (:attr:`agent.workbench.fitting.Prepared.meta`) cannot show
     #: the effect at all, their measurement being what it is (and which records would), or None
     unseen: Callable[[dict], str | None] = lambda meta: None
+    #: where unseen, what a refit of it fits is an error of the model's input itself (the voltage path
+    #: behind a pulse-cutting window), so a claim it fits clearly better than is withheld all the same
+    unseen_is_input: bool = False
     #: why its size rests on a base value the records pin loosely (``phys``: the refit's base values,
     #: ``prior``: the baseline's and the nameplate's, {key: (value, relative sd)}), or None
     read_through: Callable[[dict, dict], str | None] = lambda phys, prior: None

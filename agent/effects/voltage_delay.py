@@ -101,7 +101,7 @@ EFFECT = Effect(
             "sample to sample and tells it from the hold); with a smooth voltage at one constant speed only "
             "the rotation omega_e (d + a) T_s is seen, partly absorbed into the lumped parameters: speed or "
             "load steps of 10 % or more reveal it then",
-    raw=True, turns_voltage=True, unseen=behind_pulse_window,
+    raw=True, turns_voltage=True, unseen=behind_pulse_window, unseen_is_input=True,
     at_bound="at the columns' reach: the fit wants the voltage path further from the stated one than its columns "
              "follow (they interpolate within one sample of the stated path or of that path moved by whole samples, "
              "-1 to +2, and turn by one omega_e T_s at most); the path may be "

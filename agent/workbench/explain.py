@@ -403,11 +403,17 @@ def _better_unclaimable(rows: list[dict], first: dict | None) -> dict | None:
     the dead time's fundamental is absorbed by the base, only the harmonic's freedom is left to
     tell them apart (a family drive: dead time fitted at 19.4 V for 19.0, 1.6x better than the
     flux harmonics, which were claimed). An effect the records' measurement cannot show (``UNSEEN``)
-    is no such rival: it is unclaimable for the measurement, not for another effect."""
+    is no such rival (unclaimable for the measurement, not for another effect), unless what it fits is
+    the model's input itself (``Effect.unseen_is_input``): a voltage measured through a window that
+    cuts the PWM pulses is no delayed copy of the applied one, and where a change of the path takes
+    the control's error far better than the claim, the claim takes up part of that input's error (two
+    family drives with such windows, one of them a null drive, where the path's refit left 0.2 % and
+    0.3 % of the control's error and a gain mismatch or a saturation was claimed)."""
     if first is None or first["nrmse_after"] is None:
         return None
     better = [r for r in rows if r is not first and r["nrmse_after"] is not None and not _claimable(r)
-              and not r.get("negligible") and r.get("identifiability", {}).get("stage") != UNSEEN
+              and not r.get("negligible") and (r.get("identifiability", {}).get("stage") != UNSEEN
+                                               or get_effect(r["effect"]).unseen_is_input)
               and r["nrmse_after"] < RIVAL_RATIO * first["nrmse_after"]
               and (r["explained_fraction"] or 0.0) > 0.0]
     return min(better, key=lambda r: r["nrmse_after"], default=None)
