@@ -420,6 +420,7 @@ def _better_unclaimable(rows: list[dict], first: dict | None) -> dict | None:
 
 
 TWIN_SHARE = 0.9  #: a claim is withheld where another effect's form reproduces this share of its fitted contribution
+TWIN_CHANCE = 0.05  #: the largest chance that a random contribution reaches TWIN_SHARE through a projected form
 TWIN_ALPHA = ALPHA  #: the level at which a claim must beat its physical twin where the records cannot separate them
 #: what separates two effects that the records at hand cannot tell apart (either order)
 SEPARATES = {
@@ -463,23 +464,45 @@ def contribution(eid: str, values, preps: list[Prepared], moved_from: list[Prepa
     return out
 
 
-def reproduced(target: list[np.ndarray], kind: str, other: str, preps: list[Prepared]) -> float:
+def _design(eid: str, preps: list[Prepared]) -> np.ndarray:
+    """Effect ``eid``'s columns on every record's fit segment, less their means per record and axis,
+    stacked: (samples, parameters)."""
+    design = []
+    for p in preps:
+        c = get_effect(eid).cols(p.sig)[:, :, p.fit_slice]
+        design.append((c - c.mean(axis=-1, keepdims=True)).reshape(c.shape[0], -1))
+    return np.hstack(design).T
+
+
+def reproduced(target: list[np.ndarray], kind: str, other: str, preps: list[Prepared], through: str | None = None
+               ) -> float:
     """The share of a ``kind`` effect's contribution ``target`` (:func:`contribution`) that effect
     ``other``'s columns reproduce by least squares with a free level per record and axis (both
     sides less their means: Frisch-Waugh). 1 means the records cannot tell the two apart: at one
     speed under i_d = 0 a dead time's 6 f_e lines are a 5th and a 7th harmonic in the ratio 49:25
-    at the current's angle."""
-    b = get_effect(other)
-    if b.kind != kind:
+    at the current's angle.
+
+    ``through``: the target's own effect; ``other``'s columns are first projected onto its columns,
+    so the share says whether the target is what ``other`` leaves in that effect's form (a dead time
+    seen through the flux harmonics: its 5th and 7th in their ratio and phase, its 11th and 13th,
+    which the harmonics cannot take, set aside). 0 where such a projection spans the target's whole
+    form, or so much of it that a random contribution of that form would reach ``TWIN_SHARE`` with a
+    chance above ``TWIN_CHANCE`` (the squared cosine of a random direction in p dimensions with a
+    k-dimensional subspace is Beta(k/2, (p - k)/2))."""
+    if get_effect(other).kind != kind:
         return 0.0
-    design = []
-    for p in preps:
-        c = b.cols(p.sig)[:, :, p.fit_slice]
-        design.append((c - c.mean(axis=-1, keepdims=True)).reshape(len(b.params), -1))
-    y, x = np.concatenate([t.ravel() for t in target]), np.hstack(design).T
+    y, x = np.concatenate([t.ravel() for t in target]), _design(other, preps)
     energy = float(y @ y)
     if not (energy > 0 and np.all(np.isfinite(x))):
         return 0.0
+    if through is not None:
+        own = _design(through, preps)
+        if not np.all(np.isfinite(own)):
+            return 0.0
+        x = own @ np.linalg.lstsq(own, x, rcond=None)[0]
+        k, p = np.linalg.matrix_rank(x), np.linalg.matrix_rank(own)
+        if k == 0 or k >= p or scipy.stats.beta.sf(TWIN_SHARE, k / 2, (p - k) / 2) > TWIN_CHANCE:
+            return 0.0
     rest = y - x @ np.linalg.lstsq(x, y, rcond=None)[0]
     return float(max(0.0, 1.0 - (rest @ rest) / energy))
 
@@ -488,8 +511,10 @@ def _twin(first: dict | None, rows: list[dict], fits: dict, preps: list[Prepared
           ) -> tuple[dict, float, str] | None:
     """The candidate these records cannot tell from the to-be-claimed ``first``, if any, with the
     share and its basis: one whose form reproduces at least ``TWIN_SHARE`` of ``first``'s fitted
-    contribution (:func:`reproduced`, basis "reproduced"), or its physical twin (``SEPARATES``) on
-    records that cannot separate the two (:func:`separable`) that ``first`` does not beat on the
+    contribution (:func:`reproduced`, basis "reproduced"); its physical twin (``SEPARATES``) on
+    records that cannot separate the two (:func:`separable`) whose form, seen through ``first``'s,
+    reproduces that share (basis "pattern": a dead time's 6 f_e lines taken by the flux harmonics,
+    their 5th and 7th fitted in the dead time's 49:25 at its phase); or such a twin that ``first`` does not beat on the
     held-out records (:func:`block_p` of ``first`` against the twin's refit at ``TWIN_ALPHA``; basis
     "explains", the twin's share of the error as a fraction of ``first``'s): at one speed and one
     current angle a dead time and the magnet's harmonics leave the same lines, and which of the two
@@ -504,6 +529,11 @@ def _twin(first: dict | None, rows: list[dict], fits: dict, preps: list[Prepared
                key=lambda t: t[1], default=None)
     if best is not None and best[1] >= TWIN_SHARE:
         return best[0], best[1], "reproduced"
+    seen = max(((r, reproduced(target, kind, r["effect"], preps, through=eid)) for r in rows if r is not first
+                and frozenset((eid, r["effect"])) in SEPARATES and not separable(eid, r["effect"], own.get(eid, preps))),
+               key=lambda t: t[1], default=None)
+    if seen is not None and seen[1] >= TWIN_SHARE:
+        return seen[0], seen[1], "pattern"
     pair = next((r for r in rows if r is not first and not r["at_bound"] and (r["explained_fraction"] or 0.0) > 0.0
                  and r.get("identifiability", {}).get("stage") != UNSEEN
                  and not separable(eid, r["effect"], own.get(eid, preps))
@@ -517,6 +547,7 @@ def twin_note(first: str, other: str, share: float, basis: str = "reproduced") -
     """Why ``first`` is not claimed beside its twin ``other``, and which records would separate them."""
     how = SEPARATES.get(frozenset((first, other)), f"records that reveal {other}: {get_effect(other).reveals}")
     why = (f"{other}'s form reproduces {share:.0%} of {first}'s fitted contribution" if basis == "reproduced" else
+           f"{first}'s fitted contribution is {share:.0%} what {other} leaves in {first}'s form" if basis == "pattern" else
            f"one speed and one current angle, where {first} fits no better than {other}, which explains {share:.0%} "
            f"as much of the error")
     return f"not claimed: these records cannot tell {first} from {other} ({why}); {how} would separate them"
