@@ -485,6 +485,23 @@ def test_a_path_change_below_a_tenth_of_a_sample_is_negligible_not_claimed(base8
     assert large["params"]["rotation_samples"] == pytest.approx(0.3, rel=0.2)
 
 
+def test_a_fit_is_negligible_where_what_the_records_pin_of_it_is_given_by_a_negligible_one():
+    """negligible_as_pinned: a voltage path fitted as a 0.6-sample lead and a 0.6-sample advance
+    whose only pinned figure, the rotation, did not change, is no finding; with its delay pinned as
+    well it is one. Fully pinned, the figures decide, not the split (a 0.5 lag and a 0.45 lead are a
+    0.05-sample change). An effect without floors is never negligible by size."""
+    ctx = {"voltage_path": (-1.0, 0.0), "ts": 1e-4}
+    only_rotation = {"delay_samples": None, "advance_samples": None, "rotation_samples": -1.0, "delay_us": None}
+    every = {"delay_samples": 0.0, "advance_samples": 0.0, "rotation_samples": 0.0, "delay_us": 0.0}
+    assert ex.negligible_as_pinned("voltage_delay", [0.0, 0.6, 0.6], only_rotation, ctx)
+    assert not ex.negligible_as_pinned("voltage_delay", [0.0, 0.6, 0.6], {**only_rotation, "delay_samples": -1.6}, ctx)
+    assert ex.negligible_as_pinned("voltage_delay", [0.5, 0.45, 0.05], every, ctx)
+    assert not EFFECTS["voltage_delay"].negligible([0.5, 0.45, 0.05])  # the parameters alone would say otherwise
+    assert not ex.negligible_as_pinned("voltage_delay", [0.15, 0.0, 0.0], every, ctx)
+    assert not ex.negligible_as_pinned("voltage_delay", [0.0, 0.0, -0.12], every, ctx)
+    assert not ex.negligible_as_pinned("current_offset", [0.0, 0.0], {"offset_A": 0.0}, ctx)
+
+
 def test_an_effect_is_negligible_only_where_every_floored_parameter_is_below_its_floor():
     delay = EFFECTS["voltage_delay"]
     assert delay.negligible([0.05, 0.0, -0.09])
