@@ -557,6 +557,23 @@ def test_a_claim_whose_contribution_is_a_twins_pattern_is_withheld_naming_what_s
     assert row["significant"] and "twin" not in row
 
 
+def test_the_pattern_is_checked_on_records_whose_spread_could_have_separated_the_pair():
+    """A family drive (20038: MTPA, a speed step) with a hidden dead time: its records' current
+    angles span enough for ``separable`` to count them as able to tell the dead time from the
+    magnet's harmonics, yet the harmonics' fit, claimed before, is the dead time's pattern. What the
+    fit took decides: no claim, and the note states the records' span."""
+    _, base, preps = _family_set(20038, "inverter_deadtime")
+    candidates = ["flux_harmonics", "inverter_deadtime"]
+    doc = ex.explain(base, preps, candidates=candidates)
+    row = next(c for c in doc["candidates"] if c["effect"] == "flux_harmonics")
+    assert not any(c["significant"] for c in doc["candidates"])
+    assert row["twin"]["effect"] == "inverter_deadtime" and row["twin"]["pattern"] >= ex.TWIN_SHARE
+    import re
+
+    speeds, degrees = map(float, re.search(r"these records span ([0-9.]+)x in speed and ([0-9.]+) degrees", row["note"]).groups())
+    assert speeds >= ex.SPEED_SPREAD or degrees >= np.degrees(ex.ANGLE_SPREAD)  # separable by their spread
+
+
 def test_a_contribution_seen_through_its_own_form_is_reproduced_only_by_a_narrower_form(base80):
     """reproduced(..., through=): the dead time's columns projected onto the flux harmonics' (one
     direction of four) reproduce exactly that projection, and not a 7th harmonic alone (a dead

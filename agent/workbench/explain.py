@@ -463,6 +463,14 @@ SPEED_SPREAD = 1.2  #: records whose mean speeds span this ratio separate speed-
 ANGLE_SPREAD = np.radians(5.0)  #: records whose current angles span this turn current-locked 6 f_e lines by 30 degrees
 
 
+def spread(preps: list[Prepared]) -> tuple[float, float]:
+    """The records' span of operating points: the ratio of their largest to smallest mean speed and
+    the range of their current vectors' angles from the q axis (rad, either sign of torque)."""
+    speeds = [float(np.mean(np.abs(p.sig.omega_e))) for p in preps]
+    angles = [float(np.arctan2(-np.mean(p.sig.i_dq[0]), abs(np.mean(p.sig.i_dq[1])))) for p in preps]
+    return max(speeds) / max(min(speeds), 1e-9), float(np.ptp(angles))
+
+
 def separable(first: str, other: str, preps: list[Prepared]) -> bool:
     """Whether records ``preps`` can tell effect ``first`` from ``other`` by physics, where the two
     are known to share a signature (``SEPARATES``); True for any other pair. The magnet's 5th and
@@ -472,9 +480,8 @@ def separable(first: str, other: str, preps: list[Prepared]) -> bool:
     time modelled with a slightly wrong knee leaves exactly such lines for the harmonics to take."""
     if frozenset((first, other)) not in SEPARATES:
         return True
-    speeds = [float(np.mean(np.abs(p.sig.omega_e))) for p in preps]
-    angles = [float(np.arctan2(-np.mean(p.sig.i_dq[0]), abs(np.mean(p.sig.i_dq[1])))) for p in preps]  # either sign of torque
-    return max(speeds) >= SPEED_SPREAD * max(min(speeds), 1e-9) or float(np.ptp(angles)) >= ANGLE_SPREAD
+    speeds, angles = spread(preps)
+    return speeds >= SPEED_SPREAD or angles >= ANGLE_SPREAD
 
 
 def contribution(eid: str, values, preps: list[Prepared], moved_from: list[Prepared] | None = None
@@ -540,9 +547,10 @@ def _twin(first: dict | None, rows: list[dict], fits: dict, preps: list[Prepared
     """The candidate these records cannot tell from the to-be-claimed ``first``, if any, with the
     share and its basis: one whose form reproduces at least ``TWIN_SHARE`` of ``first``'s fitted
     contribution (:func:`reproduced`, basis "reproduced"); its physical twin (``SEPARATES``) on
-    records that cannot separate the two (:func:`separable`) whose form, seen through ``first``'s,
-    reproduces that share (basis "pattern": a dead time's 6 f_e lines taken by the flux harmonics,
-    their 5th and 7th fitted in the dead time's 49:25 at its phase); or such a twin that ``first`` does not beat on the
+    whose form, seen through ``first``'s, reproduces that share (basis "pattern": a dead time's 6 f_e
+    lines taken by the flux harmonics, their 5th and 7th fitted in the dead time's 49:25 at its
+    phase; on any records, for what the fit took shows whether they separated the two); or such a
+    twin, on records that cannot separate the two (:func:`separable`), that ``first`` does not beat on the
     held-out records (:func:`block_p` of ``first`` against the twin's refit at ``TWIN_ALPHA``; basis
     "explains", the twin's share of the error as a fraction of ``first``'s): at one speed and one
     current angle a dead time and the magnet's harmonics leave the same lines, and which of the two
@@ -558,8 +566,7 @@ def _twin(first: dict | None, rows: list[dict], fits: dict, preps: list[Prepared
     if best is not None and best[1] >= TWIN_SHARE:
         return best[0], best[1], "reproduced"
     seen = max(((r, reproduced(target, kind, r["effect"], preps, through=eid)) for r in rows if r is not first
-                and frozenset((eid, r["effect"])) in SEPARATES and not separable(eid, r["effect"], own.get(eid, preps))),
-               key=lambda t: t[1], default=None)
+                and frozenset((eid, r["effect"])) in SEPARATES), key=lambda t: t[1], default=None)
     if seen is not None and seen[1] >= TWIN_SHARE:
         return seen[0], seen[1], "pattern"
     pair = next((r for r in rows if r is not first and not r["at_bound"] and (r["explained_fraction"] or 0.0) > 0.0
@@ -571,11 +578,18 @@ def _twin(first: dict | None, rows: list[dict], fits: dict, preps: list[Prepared
     return pair, pair["explained_fraction"] / max(first["explained_fraction"] or 0.0, 1e-12), "explains"
 
 
-def twin_note(first: str, other: str, share: float, basis: str = "reproduced") -> str:
-    """Why ``first`` is not claimed beside its twin ``other``, and which records would separate them."""
+def twin_note(first: str, other: str, share: float, basis: str = "reproduced",
+              preps: list[Prepared] | None = None) -> str:
+    """Why ``first`` is not claimed beside its twin ``other``, and which records would separate them
+    (``preps``: the records, whose span of speed and current angle a "pattern" note states)."""
     how = SEPARATES.get(frozenset((first, other)), f"records that reveal {other}: {get_effect(other).reveals}")
+    span = ""
+    if preps and basis == "pattern":
+        speeds, angles = spread(preps)
+        span = f"; these records span {speeds:.2f}x in speed and {np.degrees(angles):.1f} degrees of current angle"
     why = (f"{other}'s form reproduces {share:.0%} of {first}'s fitted contribution" if basis == "reproduced" else
-           f"{first}'s fitted contribution is {share:.0%} what {other} leaves in {first}'s form" if basis == "pattern" else
+           f"{first}'s fitted contribution is {share:.0%} what {other} leaves in {first}'s form{span}"
+           if basis == "pattern" else
            f"one speed and one current angle, where {first} fits no better than {other}, which explains {share:.0%} "
            f"as much of the error")
     return f"not claimed: these records cannot tell {first} from {other} ({why}); {how} would separate them"
@@ -760,7 +774,7 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
     twin = _twin(first, rows, fits, preps, own, dict(zip(fits, held)))
     if twin is not None:  # another effect's form makes the same contribution: no claim, and what separates them
         first.update(significant=False, twin={"effect": twin[0]["effect"], twin[2]: twin[1]}, note="; ".join(
-            filter(None, [first.get("note"), twin_note(first["effect"], twin[0]["effect"], twin[1], twin[2])])))
+            filter(None, [first.get("note"), twin_note(first["effect"], twin[0]["effect"], twin[1], twin[2], preps)])))
         first = None
     for row in rows:
         if row["significant"] and row is not first:
