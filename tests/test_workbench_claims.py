@@ -455,6 +455,8 @@ def test_a_claim_is_withheld_where_an_unpinned_candidate_fits_clearly_better():
     # is the model's input itself (the voltage path behind a pulse-cutting window)
     assert _better_unclaimable([first, row("inverter_deadtime", 0.0063, False, stage="unseen")], first) is None
     assert _better_unclaimable([first, row("voltage_delay", 0.0063, False, stage="unseen")], first)["effect"] == "voltage_delay"
+    # a negligible fit that fits clearly better is a rival as well: the claim's share may be the base's own approximations'
+    assert _better_unclaimable([first, {**row("voltage_delay", 0.0063), "negligible": True}], first)["effect"] == "voltage_delay"
 
 
 def _shifted(shift: float) -> list:
