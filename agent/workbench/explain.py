@@ -259,8 +259,8 @@ def negligible_as_pinned(eid: str, values, said: dict, ctx: dict) -> bool:
     then no finding, however the fit split the rest. Where only a combination is pinned the split
     measures nothing: a voltage path fitted as a 0.6-sample lead and a 0.6-sample advance that
     cancel, where at one speed only their sum, the rotation, is seen and it did not change (family
-    drive 20030, hidden flux harmonics). The figures' response is taken as linear (exact for the voltage path's
-    totals); a feasibility LP. False for an effect without floors."""
+    drive 20030, hidden flux harmonics). The figures' response is taken as linear (exact for the
+    voltage path's totals); a feasibility LP. False for an effect without floors."""
     eff = get_effect(eid)
     values = np.asarray(values, float)
     floors = np.array([p.negligible for p in eff.params])
@@ -445,8 +445,7 @@ def _better_unclaimable(rows: list[dict], first: dict | None) -> dict | None:
     if first is None or first["nrmse_after"] is None:
         return None
     better = [r for r in rows if r is not first and r["nrmse_after"] is not None and not _claimable(r)
-              and (r.get("identifiability", {}).get("stage") != UNSEEN
-                                               or get_effect(r["effect"]).unseen_is_input)
+              and (r.get("identifiability", {}).get("stage") != UNSEEN or get_effect(r["effect"]).unseen_is_input)
               and r["nrmse_after"] < RIVAL_RATIO * first["nrmse_after"]
               and (r["explained_fraction"] or 0.0) > 0.0]
     return min(better, key=lambda r: r["nrmse_after"], default=None)
@@ -551,13 +550,13 @@ def _twin(first: dict | None, rows: list[dict], fits: dict, preps: list[Prepared
           ) -> tuple[dict, float, str] | None:
     """The candidate these records cannot tell from the to-be-claimed ``first``, if any, with the
     share and its basis: one whose form reproduces at least ``TWIN_SHARE`` of ``first``'s fitted
-    contribution (:func:`reproduced`, basis "reproduced"); its physical twin (``SEPARATES``) on
-    whose form, seen through ``first``'s, reproduces that share (basis "pattern": a dead time's 6 f_e
-    lines taken by the flux harmonics, their 5th and 7th fitted in the dead time's 49:25 at its
-    phase; on any records, for what the fit took shows whether they separated the two); or such a
-    twin, on records that cannot separate the two (:func:`separable`), that ``first`` does not beat on the
-    held-out records (:func:`block_p` of ``first`` against the twin's refit at ``TWIN_ALPHA``; basis
-    "explains", the twin's share of the error as a fraction of ``first``'s): at one speed and one
+    contribution (:func:`reproduced`, basis "reproduced"); its physical twin (``SEPARATES``, one the
+    records' measurement can show) whose form, seen through ``first``'s, reproduces that share
+    (basis "pattern": a dead time's 6 f_e lines taken by the flux harmonics, their 5th and 7th fitted
+    in the dead time's 49:25 at its phase; on any records, for what the fit took shows whether they
+    separated the two); or such a twin, on records that cannot separate the two (:func:`separable`),
+    that ``first`` does not beat on the held-out records (:func:`block_p` of ``first`` against the
+    twin's refit at ``TWIN_ALPHA``; basis "explains", the twin's share of the error as a fraction of ``first``'s): at one speed and one
     current angle a dead time and the magnet's harmonics leave the same lines, and which of the two
     fits a hair better is chance. ``own``: effect -> the records its refit was fitted on, where not
     ``preps``; ``held``: effect -> its refit's held-out errors (:func:`heldout`)."""
@@ -571,7 +570,8 @@ def _twin(first: dict | None, rows: list[dict], fits: dict, preps: list[Prepared
     if best is not None and best[1] >= TWIN_SHARE:
         return best[0], best[1], "reproduced"
     seen = max(((r, reproduced(target, kind, r["effect"], preps, through=eid)) for r in rows if r is not first
-                and frozenset((eid, r["effect"])) in SEPARATES), key=lambda t: t[1], default=None)
+                and frozenset((eid, r["effect"])) in SEPARATES and r.get("identifiability", {}).get("stage") != UNSEEN),
+               key=lambda t: t[1], default=None)
     if seen is not None and seen[1] >= TWIN_SHARE:
         return seen[0], seen[1], "pattern"
     pair = next((r for r in rows if r is not first and not r["at_bound"] and (r["explained_fraction"] or 0.0) > 0.0
