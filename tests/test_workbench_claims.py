@@ -588,6 +588,9 @@ def test_a_contribution_seen_through_its_own_form_is_reproduced_only_by_a_narrow
     target = ex.contribution("flux_harmonics", pattern, preps)
     seventh = ex.contribution("flux_harmonics", np.array([0.0, 0.0, 0.004, 0.001]), preps)
     assert ex.reproduced(target, "voltage", "inverter_deadtime", preps, through="flux_harmonics") == pytest.approx(1.0, abs=1e-6)
+    negative = ex.contribution("flux_harmonics", -pattern, preps)  # what a negative dead time would leave: none
+    assert ex.reproduced(negative, "voltage", "inverter_deadtime", preps, through="flux_harmonics") == 0.0
+    assert ex.reproduced(negative, "voltage", "inverter_deadtime", preps) > 0.5  # the direct form ignores the sign
     assert ex.reproduced(seventh, "voltage", "inverter_deadtime", preps, through="flux_harmonics") < 0.5
     assert ex.reproduced(seventh, "voltage", "flux_harmonics", preps, through="flux_harmonics") == 0.0
 

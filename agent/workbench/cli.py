@@ -172,7 +172,8 @@ def cmd_add_effect(args) -> None:
                       f"{_pct(fig['nrmse_control'])}, with {'+'.join(effects)} {_pct(fig['nrmse_after'])}\n"
                       + "\n".join(f"  {e}: {params_text(p, bounds=fig['params_bound'].get(e))}"
                                   for e, p in fig["params"].items())
-                      + (f"\n{BOUND_LEGEND}" if any(b for b in fig["params_bound"].values()) else "")
+                      + (f"\n{BOUND_LEGEND}" if any(v is not None for b in fig["params_bound"].values()
+                                                   for v in (b or {}).values()) else "")
                       + f"\nthresholds and cluster: {thresholds['action']} ({thresholds['reason']})"
                       + (f"; {thresholds['note']}" if "note" in thresholds else "")))
 

@@ -265,8 +265,10 @@ def negligible_as_pinned(eid: str, values, said: dict, ctx: dict) -> bool:
     values = np.asarray(values, float)
     floors = np.array([p.negligible for p in eff.params])
     keys = [k for k, v in said.items() if v is not None]
-    if not np.any(floors > 0) or not keys:
-        return bool(np.any(floors > 0) and not keys and eff.negligible(values))
+    if not np.any(floors > 0):
+        return False
+    if not keys:  # its response is pinned, no figure of it is: its parameters as fitted
+        return eff.negligible(values)
     at = eff.report(np.zeros_like(values), ctx)
     jac = np.array([[eff.report(e, ctx)[k] - at[k] for e in np.eye(len(values))] for k in keys])
     box = []  # the physical range, each floored parameter strictly within its floor
@@ -524,10 +526,11 @@ def reproduced(target: list[np.ndarray], kind: str, other: str, preps: list[Prep
     ``through``: the target's own effect; ``other``'s columns are first projected onto its columns,
     so the share says whether the target is what ``other`` leaves in that effect's form (a dead time
     seen through the flux harmonics: its 5th and 7th in their ratio and phase, its 11th and 13th,
-    which the harmonics cannot take, set aside). 0 where such a projection spans the target's whole
-    form, or so much of it that a random contribution of that form would reach ``TWIN_SHARE`` with a
-    chance above ``TWIN_CHANCE`` (the squared cosine of a random direction in p dimensions with a
-    k-dimensional subspace is Beta(k/2, (p - k)/2))."""
+    which the harmonics cannot take, set aside), with ``other``'s parameters held to their physical
+    signs (a dead time's pattern with a negative U_dt is no dead time). 0 where such a projection
+    spans the target's whole form, or so much of it that a random contribution of that form would
+    reach ``TWIN_SHARE`` with a chance above ``TWIN_CHANCE`` (the squared cosine of a random
+    direction in p dimensions with a k-dimensional subspace is Beta(k/2, (p - k)/2))."""
     if get_effect(other).kind != kind:
         return 0.0
     y, x = np.concatenate([t.ravel() for t in target]), _design(other, preps)
@@ -542,6 +545,9 @@ def reproduced(target: list[np.ndarray], kind: str, other: str, preps: list[Prep
         k, p = np.linalg.matrix_rank(x), np.linalg.matrix_rank(own)
         if k == 0 or k >= p or scipy.stats.beta.sf(TWIN_SHARE, k / 2, (p - k) / 2) > TWIN_CHANCE:
             return 0.0
+        signs = [(0.0 if q.lower >= 0 else -np.inf, 0.0 if q.upper <= 0 else np.inf) for q in get_effect(other).params]
+        rest = y - x @ scipy.optimize.lsq_linear(x, y, bounds=tuple(zip(*signs))).x
+        return float(max(0.0, 1.0 - (rest @ rest) / energy))
     rest = y - x @ np.linalg.lstsq(x, y, rcond=None)[0]
     return float(max(0.0, 1.0 - (rest @ rest) / energy))
 
@@ -556,10 +562,10 @@ def _twin(first: dict | None, rows: list[dict], fits: dict, preps: list[Prepared
     in the dead time's 49:25 at its phase; on any records, for what the fit took shows whether they
     separated the two); or such a twin, on records that cannot separate the two (:func:`separable`),
     that ``first`` does not beat on the held-out records (:func:`block_p` of ``first`` against the
-    twin's refit at ``TWIN_ALPHA``; basis "explains", the twin's share of the error as a fraction of ``first``'s): at one speed and one
-    current angle a dead time and the magnet's harmonics leave the same lines, and which of the two
-    fits a hair better is chance. ``own``: effect -> the records its refit was fitted on, where not
-    ``preps``; ``held``: effect -> its refit's held-out errors (:func:`heldout`)."""
+    twin's refit at ``TWIN_ALPHA``; basis "explains", the twin's share of the error as a fraction of
+    ``first``'s): at one speed and one current angle a dead time and the magnet's harmonics leave
+    the same lines, and which of the two fits a hair better is chance. ``own``: effect -> the records
+    its refit was fitted on, where not ``preps``; ``held``: effect -> its refit's held-out errors (:func:`heldout`)."""
     if first is None:
         return None
     eid = first["effect"]
