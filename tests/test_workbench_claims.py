@@ -502,6 +502,7 @@ def test_a_fit_is_negligible_where_what_the_records_pin_of_it_is_given_by_a_negl
     assert not ex.negligible_as_pinned("voltage_delay", [0.15, 0.0, 0.0], every, ctx)
     assert not ex.negligible_as_pinned("voltage_delay", [0.0, 0.0, -0.12], every, ctx)
     assert not ex.negligible_as_pinned("current_offset", [0.0, 0.0], {"offset_A": 0.0}, ctx)
+    assert not ex.negligible_as_pinned("voltage_delay", [np.nan, 0.0, 0.0], every, ctx)  # no traceback either
 
 
 def test_an_effect_is_negligible_only_where_every_floored_parameter_is_below_its_floor():

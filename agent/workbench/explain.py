@@ -271,6 +271,8 @@ def negligible_as_pinned(eid: str, values, said: dict, ctx: dict) -> bool:
         return eff.negligible(values)
     at = eff.report(np.zeros_like(values), ctx)
     jac = np.array([[eff.report(e, ctx)[k] - at[k] for e in np.eye(len(values))] for k in keys])
+    if not (np.all(np.isfinite(jac)) and np.all(np.isfinite(values))):  # a diverged fit shows no size
+        return False
     box = []  # the physical range, each floored parameter strictly within its floor
     for p, f in zip(eff.params, floors):
         lo, hi = p.bounds(ctx)
