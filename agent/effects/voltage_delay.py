@@ -24,7 +24,7 @@ advance are reported null.
 A change below ``NEGLIGIBLE`` (0.1 sample) in each of them is no finding: the free run's d axis
 turns a rotation of the back-EMF by 0.001 rad into an i_d error of omega_e psi_m 0.001 / R_s (0.6 A
 on a family drive), so the base model's own timing approximations (a fractional lag interpolated
-linearly, zoh2 at the record's mean speed, a current window taken as straight lines) already buy a
+between samples, zoh2 at the record's mean speed, a current window taken as straight lines) already buy a
 measurable gain with 0.02-0.06 sample (null drives of bench.family, whose path is stated exactly).
 """
 
