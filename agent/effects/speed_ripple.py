@@ -31,9 +31,8 @@ def speed_error_line(sig) -> np.ndarray:
     d theta_e/dt - omega_e, by least squares over the signals.
 
     Under an angle that follows the rotor (the workbench's frame,
-    :func:`agent.workbench.fitting.follow_current`, or an encoder) and a speed without that line
-    (the workbench's, :func:`agent.workbench.fitting.frame_speed`, or the PLL's narrow-band one),
-    the rotor's speed ripple is in this difference; the phase is read off the signals
+    :func:`agent.workbench.fitting.follow_current`, or an encoder) and a narrow-band speed (the
+    PLL's), the rotor's speed ripple is in this difference; the phase is read off the signals
     themselves, since theta_e / p fixes the shaft angle only up to a multiple of 2 pi / p. In the
     PLL's own frame angle and speed agree up to the loop's proportional path (about a tenth of the
     ripple at 25 Hz with the 3 Hz loop), so the line nearly vanishes there."""

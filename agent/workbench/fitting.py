@@ -5,8 +5,8 @@ for voltage effects, discretised as :class:`agent.model.DQModel` does (its ``for
 order in T_s (``discretisation = "zoh2"``), and y = x + sum_j p_j c_j(k) for output effects.
 
 Frame (:func:`follow_current`): without an encoder the angle is the PLL's, refined by the current
-vector's angle below fe/2; the speed is that angle's rate less its once-per-revolution line
-(:func:`frame_speed`: steps and load ripple, not the shaft's ripple, which stays for speed_ripple).
+vector's angle below fe/2, so that the transmission's speed ripple is not mistaken for a motor-model
+error; the speed is that angle's, below half the shaft frequency (steps, not the shaft's ripple).
 
 Two stages (:func:`refit`):
 
@@ -67,7 +67,7 @@ FIT_FRACTION = 0.5  #: share of each record used for fitting; the rest is held o
 MOVE_CUTOFF_HZ, MOVE_MIN = 5.0, 0.05  #: an operating point moves when its 5 Hz low-pass spans 5 % (:func:`fit_start`)
 BLOCK_S = 0.1  #: s, block length of the held-out significance test
 FRAME_CUTOFF = 0.5  #: the workbench's angle follows the current vector below this fraction of fe
-SPEED_CUTOFF = 0.5  #: the shaft-frequency line of a followed frame's speed is read below this fraction of fe/p (:func:`frame_speed`)
+SPEED_CUTOFF = 0.5  #: and its speed follows that angle below this fraction of the shaft frequency fe/p
 L_MAX_H = 10.0  #: H, the inductance taken when the one-step regression sees no response to the voltage
 TAU_MIN_S, TAU_MAX_S = 0.5e-3, 0.1  #: s, range of the electrical time constants L_x / R_s,x of a refit
 WITHIN_MIN = 0.01  #: share of an effect column's energy that must vary within records for one_step to fit it
@@ -173,8 +173,8 @@ def fit_start(sig: Signals, length: int) -> int:
 
 def follow_current(sig: Signals, rec: Record) -> Signals:
     """``sig`` rotated into the frame of the current vector's angle low-passed at ``FRAME_CUTOFF``
-    x fe (zero phase; the PLL's angle only unwraps it), turning at that angle's rate less its
-    shaft-frequency line (:func:`frame_speed`).
+    x fe (zero phase; the PLL's angle only unwraps it), turning at that angle's speed low-passed at
+    ``SPEED_CUTOFF`` x the shaft frequency fe/p.
 
     The agent's PLL is deliberately narrow (3 Hz): the transmission's speed ripple (mesh and shaft
     frequencies, 10-80 Hz on the rig) must stay in its residual. For judging the *motor* model that
@@ -182,34 +182,18 @@ def follow_current(sig: Signals, rec: Record) -> Signals:
     (1 V per 5 mrad at rated speed), and a free-run fit bends R and L to hide it. The drive holds
     the current vector on the rotor's q axis well beyond these frequencies, so the current's angle
     below fe/2 is the rotor's; what the effects put in the current angle (at fe and above) is left
-    out."""
+    out. The speed is that angle's below half the shaft frequency: it follows a speed step, which
+    the narrow PLL follows late (on three family drives 0.3-0.55 % rms and at most 2.4-6 % off the
+    rotor's speed, against the PLL's 0.5-1.4 % rms and 6-14 %), while the shaft's once-per-revolution
+    ripple stays in the angle against the speed, where ``speed_ripple`` reads it."""
     ab = CLARKE[:2] @ rec.i_abc
     angle = sig.theta_e + np.unwrap(np.angle((ab[0] + 1j * ab[1]) * np.exp(-1j * (sig.theta_e + 0.5 * np.pi))))
     k = np.arange(sig.n)
     slope, offset = np.polyfit(k, angle, 1)
-    theta = slope * k + offset + frame_lowpass(angle - (slope * k + offset), sig)
-    return Signals.from_abc(rec.v_abc, rec.i_abc, theta, frame_speed(theta, sig), sig.ts, sig.pole_pairs)
-
-
-def frame_speed(theta: np.ndarray, sig: Signals) -> np.ndarray:
-    """rad/s: the rate of a followed frame's angle ``theta`` less its once-per-revolution line (at
-    f_r = fe/p, in the shaft's angle theta / p), which stays in the angle against the speed for
-    :mod:`agent.effects.speed_ripple`.
-
-    The speed is the angle's own rate, not a narrower one: a speed narrower than the angle misses
-    the rotor's speed changes between the two bands (a speed step, a load's torque ripple), and the
-    model misses psi_m times them. On 36 null family drives without an encoder, a speed low-passed
-    at half the shaft frequency left the control at a median 1.09 times its noise floor against
-    0.44 in the true frame (8.7 against 0.06 on a drive with load ripple). The line's amplitude is
-    the median of the rate demodulated at f_r and low-passed at f_r/2: a ripple once per revolution
-    lasts the record, a step's leak into that band lasts a few of its periods, and a least-squares
-    line over the record would take that leak for a ripple."""
-    rate = np.gradient(theta) / sig.ts
-    shaft = theta / max(sig.pole_pairs or 1, 1)
-    turn = np.exp(1j * shaft)
-    demodulated = shaft_lowpass((rate - np.mean(rate)) * np.conj(turn), sig)
-    amplitude = np.median(demodulated.real) + 1j * np.median(demodulated.imag)
-    return rate - 2.0 * np.real(amplitude * turn)
+    wobble = angle - (slope * k + offset)
+    theta = slope * k + offset + frame_lowpass(wobble, sig)
+    omega = (slope + np.gradient(shaft_lowpass(wobble, sig))) / sig.ts
+    return Signals.from_abc(rec.v_abc, rec.i_abc, theta, omega, sig.ts, sig.pole_pairs)
 
 
 def frame_lowpass(x: np.ndarray, sig: Signals, share: float = FRAME_CUTOFF) -> np.ndarray:
@@ -1107,7 +1091,7 @@ def onto_rotor(preps: list[Prepared], lq: float, rs: float = 0.0) -> list[Prepar
     frame that leads by delta it points delta behind q, so delta = pi/2 - angle(v - R_s i - j omega_e
     L_q i), low-passed like :func:`follow_current`'s angle; through a load step the stator flux's
     own change is taken off first (psi = (v - R_s i - d psi/dt) / (j omega_e), one pass from the
-    steady state), and the frame turns at its angle's rate (:func:`frame_speed`). Under MTPA the current vector leads the
+    steady state), and the frame's speed loses the turn's rate as follow_current's speed would. Under MTPA the current vector leads the
     rotor's q axis by the current angle (3-15 degrees on family drives, another at every load); left
     there, the 6 f_e lines of flux harmonics turn by 6 delta from load to load and a salient
     machine's inductances mix. ``lq`` H and ``rs`` ohm from the baseline (R_s i is along the
@@ -1135,8 +1119,8 @@ def onto_rotor(preps: list[Prepared], lq: float, rs: float = 0.0) -> list[Prepar
         delta = -np.unwrap(np.angle(flux - lq * i))  # the active flux lies on the rotor's d axis
         if np.max(np.abs(delta)) > np.arcsin(FRAME_MAX):  # beyond any current angle: the L_q is wrong, turn none
             return preps
-        sig = Signals.from_abc(s.v_abc, s.i_abc, s.theta_e - delta, frame_speed(s.theta_e - delta, s), s.ts,
-                               s.pole_pairs)
+        omega = s.omega_e - np.gradient(shaft_lowpass(delta - np.mean(delta), s)) / s.ts  # as follow_current's
+        sig = Signals.from_abc(s.v_abc, s.i_abc, s.theta_e - delta, omega, s.ts, s.pole_pairs)
         turned.append(replace(p, sig=sig, meta={**p.meta, "frame_turned_rad": float(np.mean(delta))}))
     return turned
 
