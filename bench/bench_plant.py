@@ -65,6 +65,17 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def us_per_row(cpu_s: float, rows: int) -> float | None:
+    """CPU microseconds per row, or None where ``cpu_s`` (read from /proc, in clock ticks) is under two
+    ticks: below its resolution (10 ms), a count of 0 or 1 tick says nothing about the cost."""
+    return 1e6 * cpu_s / rows if cpu_s >= 2.0 / CLK_TCK else None
+
+
+def per_row_text(value: float | None, rows: int) -> str:
+    """A per-row CPU figure for the table, or the bound where /proc could not resolve it."""
+    return f"{value:.1f} us" if value is not None else f"below /proc's resolution (< {2e6 / CLK_TCK / rows:.1f} us)"
+
+
 def cpu_seconds(pid: int) -> float:
     """User + system CPU time of process ``pid`` (its threads included), s."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
@@ -465,9 +476,9 @@ def measure_postgres(tmp: Path, drives: int, trend_rows: int, event_rows: int) -
         server.remove()
     return {"server_version": version, "rows_written": written, "batches": batches, "batch_size": BATCH_SIZE,
             "wall_s": wall, "rows_per_s": written / wall, "historian_cpu_us_per_row": 1e6 * cpu / written,
-            "server_backend_cpu_us_per_row": 1e6 * server_cpu / written, "tables": sizes,
+            "server_backend_cpu_us_per_row": us_per_row(server_cpu, written), "tables": sizes,
             "retention_deleted_rows_per_s": deleted / delete_wall,
-            "retention_backend_cpu_us_per_row": 1e6 * delete_cpu / deleted,
+            "retention_backend_cpu_us_per_row": us_per_row(delete_cpu, deleted),
             "note": "fsync=off, full_page_writes=off (tests/pg_support.py): the server's disk is not in these figures"}
 
 
@@ -516,7 +527,8 @@ def scale(fig: dict, drives: int = 10_000, gateways: int = 100, routers=(1, 3, 1
     ingest_cores = state_rate / fig["ingest"]["samples_per_cpu_s"]
     ingest_wall = state_rate / fig["ingest"]["samples_per_wall_s"]
     writer_cores = trend_rows_per_s * fig["postgres"]["historian_cpu_us_per_row"] / 1e6
-    pg_cores = trend_rows_per_s * fig["postgres"]["server_backend_cpu_us_per_row"] / 1e6
+    pg_row = fig["postgres"]["server_backend_cpu_us_per_row"]
+    pg_cores = None if pg_row is None else trend_rows_per_s * pg_row / 1e6
     ing = fig["ingest"]
     # one historian's ingest thread: wall time per drive-second (a parse per state, an fsync'd append per trend row)
     ingest_s_per_drive_s = (ing["wall_us_per_sample_without_appends"] / STATE_PERIOD_S
@@ -617,9 +629,11 @@ def table(fig: dict) -> str:
               f"| PostgreSQL writer path | {pg['rows_per_s']:.0f} rows/s | batches of {pg['batch_size']}, "
               f"{pg['rows_written']} rows |",
               f"| retention delete (apply_retention) | {pg['retention_deleted_rows_per_s']:.0f} rows/s, "
-              f"{pg['retention_backend_cpu_us_per_row']:.1f} us backend CPU per row | every trend row, chunks of 10 000 |",
+              f"{per_row_text(pg['retention_backend_cpu_us_per_row'], pg['tables']['evidence_trend']['rows'])} backend "
+              f"CPU per row | every trend row, chunks of 10 000 |",
               f"| historian CPU per row written | {pg['historian_cpu_us_per_row']:.1f} us | buffer read + psycopg |",
-              f"| PostgreSQL backend CPU per row | {pg['server_backend_cpu_us_per_row']:.1f} us | /proc of the backend |"]
+              f"| PostgreSQL backend CPU per row | {per_row_text(pg['server_backend_cpu_us_per_row'], pg['rows_written'])} | "
+              f"/proc of the backend |"]
     for t, v in pg["tables"].items():
         lines.append(f"| {t} bytes per row | {v['bytes_per_row']:.0f} B (heap {v['heap_bytes_per_row']:.0f}) | "
                      f"{v['rows']} rows, indexes included |")
@@ -634,7 +648,8 @@ def table(fig: dict) -> str:
               f"| trend GB at 90 days | {st['trend_at_retention']:.1f} |",
               f"| events GB/year (typical) | {st['events_per_year']['typical']:.3f} |",
               f"| historian ingest cores | {h['ingest_cores']:.2f} (wall {h['ingest_wall_fraction']:.2f}) |",
-              f"| writer cores / PostgreSQL cores | {h['writer_cores']:.3f} / {h['postgres_cores']:.3f} |",
+              f"| writer cores / PostgreSQL cores | {h['writer_cores']:.3f} / "
+              f"{'n/a' if h['postgres_cores'] is None else format(h['postgres_cores'], '.3f')} |",
               f"| drives one historian ingests (ingest thread 100 % busy) | {h['drives_per_historian']:.0f} |",
               f"| historians for the plant (each at most 70 % busy) | {h['historians_needed']} |"]
     return "\n".join(lines)
