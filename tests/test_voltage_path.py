@@ -52,7 +52,9 @@ def test_a_fractional_shift_is_cubic_exact_on_whole_samples_and_holds_the_ends()
     np.testing.assert_array_equal(shifted(x, -1.0), [[0, 0, 1, 2, 3, 4, 5, 6, 7, 8]])
 
 
-FRACTIONAL = 20686  #: a continuous inverter holding its voltage in dq on a clock asynchronous to the record's, measured through a window 0.648 sample late
+#: a continuous inverter holding its voltage in dq on a clock asynchronous to the record's, measured
+#: through a window 0.648 sample late
+FRACTIONAL = 20686
 
 
 def test_a_window_lagging_by_a_fraction_of_a_sample_gives_the_applied_interval_average():

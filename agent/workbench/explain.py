@@ -431,8 +431,8 @@ RIVAL_RATIO = 0.8  #: a claim is withheld where an unclaimed candidate's held-ou
 def _better_unclaimed(rows: list[dict], first: dict | None) -> dict | None:
     """The candidate that fits the held-out records clearly better than the one to be claimed
     (NRMSE below ``RIVAL_RATIO`` of its) but is not claimed itself (its parameters absorbed by the
-    base, at a bound, or its test short of Holm's level), if any. Claiming the worse one would name a different effect than the
-    records carry: a hidden dead time and the flux harmonics both put a 6 f_e line in dq, and where
+    base, at a bound, or its test short of Holm's level), if any. Claiming the worse one would name a
+    different effect than the records carry: a hidden dead time and the flux harmonics both put a 6 f_e line in dq, and where
     the dead time's fundamental is absorbed by the base, only the harmonic's freedom is left to
     tell them apart (a family drive: dead time fitted at 19.4 V for 19.0, 1.6x better than the
     flux harmonics, which were claimed). An effect the records' measurement cannot show (``UNSEEN``)
@@ -786,8 +786,8 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
         first.update(significant=False, note="; ".join(filter(None, [first.get("note"), (
             f"not claimed: {rival['effect']} fits the held-out records better (NRMSE {100 * rival['nrmse_after']:.3g} % "
             f"against {100 * first['nrmse_after']:.3g} %) but " + (
-                f"is not significant with these records (p = {rival['p_value']:.2g}): more records like these would "
-                f"tell which" if short else f"these records cannot pin it ({rival.get('note', '')})"))])))
+                f"its own test falls short of Holm's level (p = {rival['p_value']:.2g}), so these records cannot tell "
+                f"which of the two they carry" if short else f"these records cannot pin it ({rival.get('note', '')})"))])))
         first = None
     twin = _twin(first, rows, fits, preps, own, dict(zip(fits, held)))
     if twin is not None:  # another effect's form makes the same contribution: no claim, and what separates them
