@@ -245,8 +245,9 @@ class BaselineBuilder:
         fit = fit_record(sig, self.profile, self.settings["form"] if m is None else m.form, extra,
                          prefilter_hz=self.settings["prefilter_hz"], plausible=False)
         self.fits.append(fit)
-        self.observations.append(observe(corrected(sig, self.profile), encoder,
-                                         instruments=not self.profile.sampling.current_window_samples))
+        sampling = self.profile.sampling
+        self.observations.append(observe(corrected(sig, self.profile), encoder, samples=sampling.current_source,
+                                         instruments=not sampling.current_window_samples))
         self.sources.append(source)
         return fit
 

@@ -62,6 +62,11 @@ class Sampling:
     #: axis) or "mtpa" (it leads q by the current angle, which grows with the load); without an
     #: encoder the workbench turns the current's frame onto the rotor's only for "mtpa"
     current_reference: str | None = None
+    #: whose current samples the records carry: "controller" (the drive's own, which its current loop
+    #: acts on: a drive trace) or "independent" (a separate DAQ's sensors or channels); a controller
+    #: without computation delay answers its own samples' noise within the sample, which identify
+    #: must know to read the inductances (agent.physical._dynamics)
+    current_source: str | None = None
     #: the inverter: "pwm" (it switches the DC link: what a measured terminal voltage averages) or
     #: "continuous" (a linear amplifier, or a simulation's averaged inverter); not stated: PWM
     inverter: str = "pwm"
@@ -194,6 +199,8 @@ def parse_profile(data: dict, source: str = "<profile>") -> DriveProfile:
         parts[section] = _build(cls, table, section, source)
     if parts["sampling"].voltage_source not in ("measured", "reference"):
         raise InputError("key 'sampling.voltage_source' must be \"measured\" or \"reference\"", source=source)
+    if parts["sampling"].current_source not in (None, "controller", "independent"):
+        raise InputError("key 'sampling.current_source' must be \"controller\" or \"independent\"", source=source)
     if parts["sampling"].inverter not in ("pwm", "continuous"):
         raise InputError("key 'sampling.inverter' must be \"pwm\" or \"continuous\"", source=source)
     if parts["sampling"].current_reference not in (None, "id0", "mtpa"):

@@ -307,14 +307,93 @@ def test_a_controller_acting_within_the_sample_does_not_bias_the_inductances():
         drive = draw_drive(seed)
         assert drive.computation_delay == delay and drive.encoder
         prof = family_profile(drive, timing=True)
-        obs = [observe(corrected(record_signals(family_simulate(drive, {}, 80.0, 1.0, seed=100 + j), prof), prof))
-               for j in range(4)]
-        (ld, _, switched_d), (lq, _, switched_q) = _dynamics(obs)
-        (ld_c, _, _), (lq_c, _, _) = _dynamics([dataclasses.replace(o, iv=[]) for o in obs])  # compensated only
-        assert switched_d == switched_q == (delay == 0)
+        assert prof.sampling.current_source == "controller"
+        obs = [observe(corrected(record_signals(family_simulate(drive, {}, 80.0, 1.0, seed=100 + j), prof), prof),
+                       samples="controller") for j in range(4)]
+        (ld, _, asked_d), (lq, _, asked_q) = _dynamics(obs)
+        (ld_c, _, _), (lq_c, _, _) = _dynamics([dataclasses.replace(o, iv=[], own=None) for o in obs])  # plain only
+        assert asked_d == asked_q == ("answers" if delay == 0 else None)
         tol = 0.1 if delay == 0 else 0.02
         assert ld == pytest.approx(drive.ld_h, rel=tol) and lq == pytest.approx(drive.lq_h, rel=tol), (seed, ld, lq)
         if delay == 0:
             assert ld_c > 2.0 * drive.ld_h and lq_c < 0.7 * drive.lq_h, (ld_c, lq_c)
         else:
             assert (ld_c, lq_c) == (ld, lq)
+
+
+def _family_observations(seed: int, samples: str | None):
+    from agent.voltage_path import corrected
+    from bench.family import draw_drive, profile as family_profile, simulate as family_simulate
+
+    drive = draw_drive(seed)
+    prof = family_profile(drive, timing=True)
+    sigs = [corrected(record_signals(family_simulate(drive, {}, 80.0, 1.0, seed=100 + j), prof), prof) for j in range(4)]
+    return drive, prof, sigs, [observe(s, drive.encoder, samples=samples) for s in sigs]
+
+
+def test_the_controllers_immediate_answer_is_read_from_its_own_samples():
+    """immediate_answer against the simulator's own current loop: without computation delay the
+    voltage answers this sample's current with about -K_p (K_p = 2 pi bandwidth L_ctrl on each axis);
+    with one it does not answer it at all."""
+    from agent.physical import immediate_answer
+
+    for seed, delay in ((20048, 0), (20043, 1)):
+        drive, prof, sigs, _ = _family_observations(seed, "controller")
+        assert drive.computation_delay == delay and drive.current_sampling == "centre"
+        kp = 2 * np.pi * drive.current_bandwidth_hz * np.array([drive.ctrl_ld_h, drive.ctrl_lq_h])
+        k = np.diag(immediate_answer(sigs[0]))
+        if delay == 0:
+            np.testing.assert_allclose(-k, kp, rtol=0.15)
+        else:
+            assert np.all(np.abs(k) < 0.1 * kp), (k, kp)
+
+
+def test_constant_references_on_the_controllers_own_samples_do_not_pin_a_wrong_inductance():
+    """Family drive 20048: the controller acts on the sample it has just taken, the records carry its
+    own samples, the references are constant. The plain noise-compensated reading puts L_d 2x or more
+    off its truth with a claimed sd of a few per cent; identify now says L_d is not identifiable and
+    why, and still reads L_q from the steady d voltage (encoder frame) within 5 %. With the profile
+    silent on the current's source it says the records cannot tell, and names the key."""
+    drive, prof, sigs, obs = _family_observations(20048, "controller")
+    assert drive.computation_delay == 0 and drive.excitation == "constant" and drive.encoder
+    from agent.physical import _dynamics
+
+    (ld_plain, _, _), _ = _dynamics([dataclasses.replace(o, iv=[], own=None) for o in obs])
+    assert not 0.5 < ld_plain / drive.ld_h < 2.0, ld_plain  # what the plain reading said
+    est = estimate(obs, prof)
+    assert est.values["Ld"] is None and est.values["Lq"] == pytest.approx(drive.lq_h, rel=0.05)
+    reason = " ".join(g["reason"] for g in est.unidentifiable if "Ld" in g["parameters"])
+    assert "answers the current's noise within the sample" in reason and "nameplate.ld_h" in reason, reason
+
+    silent = estimate([observe(s, True, samples=None) for s in sigs], prof)
+    assert silent.values["Ld"] is None
+    reason = " ".join(g["reason"] for g in silent.unidentifiable if "Ld" in g["parameters"])
+    assert "sampling.current_source" in reason, reason
+
+
+def test_an_independent_daqs_current_keeps_the_compensated_reading():
+    """Family drive 20035: no computation delay, but its records' current is a DAQ's own channel (its
+    noise never reaches the voltage). Stated so, identify keeps the precise compensated reading of
+    L_d (within 5 %), as before this check existed."""
+    drive, prof, sigs, obs = _family_observations(20035, "independent")
+    assert drive.computation_delay == 0 and drive.current_sampling == "async" and drive.encoder
+    assert all(o.own is None for o in obs)
+    est = estimate(obs, prof)
+    assert est.values["Ld"] == pytest.approx(drive.ld_h, rel=0.05) and est.data_rel_sd["Ld"] < 0.05
+
+
+def test_a_followed_frames_inductance_that_contradicts_the_steady_state_is_named_and_not_used():
+    """Family drive 20196: no encoder, i_d = 0 (the profile says so), speed steps. The PLL's frame
+    lags the steps, and the current's sample-to-sample response reads L_q 1.5x or more its truth
+    with a claimed sd of a few per cent; the steady d voltage (v_d = -omega_e L_q i_q on the current's
+    axis) reads it within 5 %. The estimate keeps the steady state's and warns with both values."""
+    from agent.physical import _dynamics
+
+    drive, prof, sigs, obs = _family_observations(20196, "controller")
+    assert not drive.encoder and drive.current_reference == "id0" and drive.excitation == "speed_step"
+    lq_dynamics, sd, _ = _dynamics(obs)[1]
+    assert lq_dynamics > 1.5 * drive.lq_h and sd < 0.05, (lq_dynamics, sd)
+    est = estimate(obs, prof)
+    assert est.values["Lq"] == pytest.approx(drive.lq_h, rel=0.05)
+    note = est.conflicts["Lq_dynamics"]
+    assert f"{lq_dynamics:.4g} H" in note and "sds apart" in note and "steady state's is used" in note, note

@@ -50,11 +50,13 @@ def test_constant_references_give_the_no_dynamics_answer_not_a_ranking(quiet_set
     doc = json.loads(capsys.readouterr().out)
     assert doc["candidates"] == []
     assert doc["note"].startswith("these records carry almost no dynamics (voltage spread ")
-    assert "record a load or speed step" in doc["note"] and "nameplate.lq_h" in doc["note"]
+    # L_q is read from the steady d voltage (the profile says i_d = 0): what is left open is L_d
+    assert "record a change of the d current" in doc["note"] and "nameplate.ld_h" in doc["note"], doc["note"]
+    assert "nameplate.lq_h" not in doc["note"]
     dyn = doc["dynamics"]
     # the figures the note gives are the records' own: the spread hardly above the channel's noise
     assert dyn["voltage_spread_v"] < 2 * dyn["voltage_noise_v"]
-    assert dyn["quiet"] and "Lq" in dyn["unpinned"] and dyn["inductance_rel_se"]["Lq"] > 0.1
+    assert dyn["quiet"] and dyn["unpinned"] == ["Ld"] and dyn["inductance_rel_se"]["Ld"] > 0.1
     assert main(["model", "explain", "--model", str(tmp_path / "m.json"), *data]) == 0
     out = capsys.readouterr().out
     assert "no effect ranked: these records carry almost no dynamics" in out
@@ -98,22 +100,29 @@ def test_a_base_beyond_any_machine_of_the_rating_is_named_not_ranked_against():
 
 
 def test_a_drive_whose_records_pin_no_inductance_gets_that_answer():
-    """A family drive without an encoder (asynchronous current sampling, a speed loop, load ripple):
-    identify leaves L_d, L_q open and the control refit lands kilohenries away; explain ranks nothing
-    and names the nameplate or an encoder angle for L_q, a load step or the nameplate's R_s for R_s,q.
-    With its nameplate the same records are ranked."""
+    """A family drive without an encoder (asynchronous current sampling, a speed loop, load ripple)
+    whose profile does not say it holds i_d = 0: identify leaves L_d, L_q open and the control refit
+    lands kilohenries away; explain ranks nothing and names the nameplate or an encoder angle for
+    L_q, a load step or the nameplate's R_s for R_s,q. With its nameplate, or with its profile saying
+    i_d = 0 (the steady d voltage then reads L_q, within 5 %), the same records are ranked."""
+    import dataclasses
+
     from bench.family import draw_drive, profile as family_profile, simulate as family_simulate
 
     drive = draw_drive(20023)
-    assert not drive.encoder and drive.current_sampling == "async"
-    for plate in (False, True):
+    assert not drive.encoder and drive.current_sampling == "async" and drive.current_reference == "id0"
+    for plate, reference in ((False, None), (True, None), (False, "id0")):
         prof = family_profile(drive, nameplate=plate, timing=True)
+        prof = dataclasses.replace(prof, sampling=dataclasses.replace(prof.sampling, current_reference=reference))
         base = identify_baseline([family_simulate(drive, {}, 80.0, 1.0, seed=100 + j) for j in range(4)], prof,
                                  window_s=0.5)
         doc = explain(base, prepare([family_simulate(drive, {}, load, 1.0, seed=200 + j)
                                      for j, load in enumerate((40.0, 60.0, 90.0, 100.0))], prof))
-        if plate:
+        if reference:
+            assert base.physical["values"]["Lq"] == pytest.approx(drive.lq_h, rel=0.05)
+        if plate or reference:
             assert doc["candidates"], doc.get("note")
+            assert not any(c["significant"] for c in doc["candidates"])
         else:
             assert doc["candidates"] == [] and "base model is not identified" in doc["note"], doc.get("note")
             assert "nameplate.lq_h" in doc["note"] and "encoder angle" in doc["note"]
@@ -123,9 +132,10 @@ def test_a_drive_whose_records_pin_no_inductance_gets_that_answer():
 @pytest.mark.parametrize("inverter", ["switched", "averaged"])
 def test_a_voltage_the_current_does_not_follow_is_named_as_the_cause(inverter):
     """A family drive (bench.family 20017: constant references, no encoder, a measured voltage sampled
-    at an instant, asynchronously to its PWM): its voltage varies 27 times its noise, yet neither
-    inductance is pinned and the base refit runs to Rs_q 100 ohm, Lq 10 H. The answer names the
-    cause, a measured voltage that is not the winding's interval mean. Checked against the same
+    at an instant, asynchronously to its PWM), its profile not saying it holds i_d = 0: its voltage
+    varies 27 times its noise, yet neither inductance is pinned and the base refit runs to Rs_q 100
+    ohm, Lq 10 H. The answer names the cause, a measured voltage that is not the winding's interval
+    mean. (Said i_d = 0, its steady d voltage pins L_q and the records are ranked.) Checked against the same
     drive with an averaged inverter (no switching pulses in the samples): there the voltage varies
     only twice its noise, and L_d is not pinned (one-step relative sd 11 % with its window's
     fractional lag read cubically; 6.5 % read linearly, whose low-pass smooths the regressor's
@@ -137,6 +147,7 @@ def test_a_voltage_the_current_does_not_follow_is_named_as_the_cause(inverter):
 
     drive = dataclasses.replace(draw_drive(20017), inverter=inverter)
     prof = profile(drive, timing=True)
+    prof = dataclasses.replace(prof, sampling=dataclasses.replace(prof.sampling, current_reference=None))
     base = identify_baseline([simulate_family(drive, {}, 80.0, 1.0, seed=100 + j) for j in range(4)], prof,
                              window_s=0.5)
     doc = explain(base, prepare([simulate_family(drive, {}, load, 1.0, seed=200 + j)

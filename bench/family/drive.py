@@ -321,7 +321,8 @@ def profile(drive: Drive, nameplate: bool = False, timing: bool = False) -> Driv
     with the records' winding temperature), psi_m, L_d and L_q, each within 5 % of the truth
     (a random error drawn from the drive's seed); with ``timing``, the voltage path the drive's
     documentation gives (computation delay, hold, logging, the DAQ filter's lag:
-    :func:`bench.family.effects.voltage_path` of the healthy drive), the current ADC's window and the current reference (i_d = 0 or MTPA)."""
+    :func:`bench.family.effects.voltage_path` of the healthy drive), the current ADC's window, whose
+    current samples the records carry and the current reference (i_d = 0 or MTPA)."""
     doc = {
         "name": f"family_{drive.seed}",
         "motor": {"pole_pairs": drive.pole_pairs, "rated_power_w": drive.rated_power_w,
@@ -343,5 +344,8 @@ def profile(drive: Drive, nameplate: bool = False, timing: bool = False) -> Driv
         doc["sampling"].update(voltage_delay_samples=delay, voltage_advance_samples=advance)
         if drive.current_sampling == "average":  # the interval around each sample
             doc["sampling"]["current_window_samples"] = 1.0
+        # the controller's own ADC samples at the carrier's centre; averaged and asynchronous records
+        # come from the DAQ's own channels (bench.family.simulate)
+        doc["sampling"]["current_source"] = "controller" if drive.current_sampling == "centre" else "independent"
         doc["sampling"]["current_reference"] = drive.current_reference
     return parse_profile(doc, source=f"family_{drive.seed}")
