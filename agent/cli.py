@@ -196,7 +196,7 @@ def cmd_identify(args) -> None:
            "cluster": {"centre": base.cluster.centre, "limit": base.cluster.limit, "region": base.cluster.region},
            "seconds": round(time.perf_counter() - t0, 3), "alarm": _alarm_evidence(base),
            "warnings": list(phys.get("conflicts", {}).values())}
-    for w in doc["warnings"]:  # a nameplate value the records contradict: dropped, the records' value kept
+    for w in doc["warnings"]:  # a nameplate value, or a sample-to-sample inductance, the records contradict: dropped
         log.warning("%s", w)
     for g in phys["unidentifiable"]:
         if g["from_nameplate"]:
