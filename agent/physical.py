@@ -65,7 +65,7 @@ class Observation:
     encoder: bool = True  #: the frame is the encoder's (else a PLL's, whose d axis carries the speed ripple)
     iv: list = field(default_factory=list)  #: per axis (Z^T X, Z^T y, Z^T diag(e^2) Z): the same regression
     #: with the previous sample's regressors as instruments (:func:`_dynamics`)
-    own: list | None = None  #: per axis (G, h) compensated also for the controller's immediate answer to
+    own: list | None = None  #: per axis (G, h, M) compensated also for the controller's immediate answer to
     #: this sample's noise (:func:`immediate_answer`), as if the record's current were the controller's
     #: own samples; None where the profile says it is not
     samples: str | None = None  #: the profile's ``sampling.current_source`` ("controller", "independent")
@@ -144,7 +144,7 @@ def observe(sig: Signals, encoder: bool = True, instruments: bool = True, sample
     sv = zero_sequence_sigma(sig.v_abc) if sig.v_abc is not None else 0.0
     si = zero_sequence_sigma(sig.i_abc) if sig.i_abc is not None else 0.0
     answer = None if samples == "independent" else immediate_answer(sig)
-    gram, iv, own = [], [], []
+    gram, iv, own = [], [], (None if answer is None else [])
     for axis in (0, 1):
         other = 1 - axis
         cols = [sig.i_dq[axis, :-1], sig.v_dq[axis, :-1], w[:-1] * sig.i_dq[other, :-1]]
@@ -164,15 +164,15 @@ def observe(sig: Signals, encoder: bool = True, instruments: bool = True, sample
         e = y - x @ theta
         xe = x * e[:, None]
         gram.append((g, h, xe.T @ xe))
-        if answer is not None:  # the voltage's row meets K n(k): E[v n_a] = K_aa s_i, E[v omega n_b] = K_ab omega s_i
+        if own is not None:  # the voltage's row meets K n(k): E[v n_a] = K_aa s_i, E[v omega n_b] = K_ab omega s_i
             g_own = g.copy()
             g_own[1, 0] -= answer[axis, axis] * _dq_noise_var(si) * (sig.n - 1)
             g_own[1, 2] -= answer[axis, other] * float(np.mean(w)) * _dq_noise_var(si) * (sig.n - 1)
-            own.append((g_own, h))
+            own.append((g_own, h, xe.T @ xe))
         if instruments:
             zx, zy = iv_moments(x, y)
             iv.append((zx, zy, iv_meat(x, y, np.linalg.lstsq(zx, zy, rcond=None)[0])))
-    return Observation(means, np.array(se), gram, sig.ts, encoder, iv, own if answer is not None else None, samples)
+    return Observation(means, np.array(se), gram, sig.ts, encoder, iv, own, samples)
 
 
 @dataclass
@@ -289,9 +289,24 @@ def endogenous(b: float, b_iv: float, var_iv: float) -> bool:
                 and abs(b - b_iv) > max(ENDOGENOUS_Z * np.sqrt(max(var_iv, 0.0)), ENDOGENOUS_REL * abs(b_iv)))
 
 
+#: why :func:`_dynamics` asked for the instrumented reading, as the reason of an inductance it left unidentified
+ASKED_WHY = {
+    "answers": "the drive's voltage answers the current's noise within the sample (a controller without computation "
+               "delay acting on the samples recorded), so the current loop's broadband voltage does not read the "
+               "inductance",
+    "unstated": "these records read it differently as the controller's own current samples and as an independent "
+                "DAQ's (a controller without computation delay answers its own samples' noise within the sample): "
+                "state sampling.current_source (\"controller\" or \"independent\") in the profile",
+    "instruments": "the compensated and the instrumented readings of the current's response disagree beyond the "
+                   "instrumented one's standard error, so something in these records answers the current's noise "
+                   "that the model lacks (a filter the profile does not state, the PWM ripple in samples off the "
+                   "carrier's centre)",
+}
+
+
 def _dynamics(obs: list[Observation]) -> list[tuple[float, float, str | None]]:
-    """Per axis (L_x in H, sd of log L_x, why the instrumented regression was asked: None, ``"answers"``
-    or ``"unstated"``) from the pooled, noise-compensated dynamics regressions (shared slopes, one
+    """Per axis (L_x in H, sd of log L_x, why the instrumented regression was asked: None, ``"answers"``,
+    ``"unstated"`` or ``"instruments"``) from the pooled, noise-compensated dynamics regressions (shared slopes, one
     intercept per record); (nan, inf) when the voltage does not excite the current's response. The
     covariance is the sandwich G^-1 M G^-1: the compensated estimator's residual carries the
     regressors' own noise, which the textbook s^2 G^-1 would leave out.
@@ -313,7 +328,9 @@ def _dynamics(obs: list[Observation]) -> list[tuple[float, float, str | None]]:
       own reading itself is not used: under constant references it leans on the noise variances and
       K to within a few per cent (of the 44 axes above it left 17 more than 20 % off, median 6 %);
     * the Hausman-type check: the two readings differ by more than ``ENDOGENOUS_Z`` of the
-      instrumented one's standard error (:func:`endogenous`).
+      instrumented one's standard error (:func:`endogenous`): ``"answers"``, or ``"instruments"``
+      where the profile says the current is an independent DAQ's (then no controller answers its
+      noise, and the cause is something else the model lacks: an unstated filter, the PWM ripple).
 
     The instrumented reading then stands with its own, wider uncertainty (on a drive without the
     loop's broadband excitation, so wide that L_x is reported as not identifiable). Encoder frames
@@ -335,7 +352,7 @@ def _dynamics(obs: list[Observation]) -> list[tuple[float, float, str | None]]:
         var_b = (gi @ meat @ gi)[1, 1]
         asked = None
         if all(o.own is not None for o in use):
-            g_own, h_own, _ = _pooled([(*o.own[axis], np.zeros_like(o.own[axis][0])) for o in use], p)
+            g_own, h_own, _ = _pooled([o.own[axis] for o in use], p)
             b_own = (scaled_pinv(g_own) @ h_own)[1]
             if not (np.isfinite(b_own) and abs(b_own - b) <= ENDOGENOUS_REL * abs(b)):
                 asked = "answers" if all(o.samples == "controller" for o in use) else "unstated"
@@ -345,7 +362,7 @@ def _dynamics(obs: list[Observation]) -> list[tuple[float, float, str | None]]:
                 zi = scaled_pinv(zx)
                 b_iv, var_iv = (zi @ zy)[1], (zi @ zmeat @ zi.T)[1, 1]
             if asked is None and endogenous(b, b_iv, var_iv):
-                asked = "answers"
+                asked = "instruments" if all(o.samples == "independent" for o in use) else "answers"
             if asked is not None:
                 b, var_b = b_iv, var_iv
         elif asked is not None:
@@ -400,49 +417,54 @@ def estimate(obs: list[Observation], profile: DriveProfile, priors: dict[str, Pr
     ``conflicts`` names the field and the size of the disagreement, and the records' value is the
     one reported (a compromise between two values that disagree would be neither)."""
     priors = nameplate_priors(profile) if priors is None else priors
-    est = _estimate(obs, profile, priors)
-    if not est.conflicts:
+    dyn = _dynamics(obs)
+    est = _estimate(obs, profile, priors, dyn)
+    contradicted = [k for k in est.conflicts if k in priors]
+    if not contradicted:
         return est
     # the contradicted value widened to the vague prior's spread: the records set it, the rest stays
     kept = {k: Prior(p.value, VAGUE_SD, f"{p.source} (contradicted by the records: not used)")
-            if k in est.conflicts else p for k, p in priors.items()}
-    again = _estimate(obs, profile, kept)
-    again.conflicts = est.conflicts
+            if k in contradicted else p for k, p in priors.items()}
+    again = _estimate(obs, profile, kept, dyn)
+    again.conflicts = {**est.conflicts, **again.conflicts}
     return again
 
 
-def _estimate(obs: list[Observation], profile: DriveProfile, priors: dict[str, Prior], dyn: list | None = None
-              ) -> Estimate:
-    """The MAP fit; where a dynamic reading of L_x and the rest of the records disagree, the fit again
-    without it (:func:`_dynamics_conflicts`)."""
-    dyn = _dynamics(obs) if dyn is None else dyn
+def _estimate(obs: list[Observation], profile: DriveProfile, priors: dict[str, Prior], dyn: list) -> Estimate:
+    """The MAP fit; where a sample-to-sample reading of L_x and the rest of the records disagree
+    (:func:`_dynamics_conflicts`), the fit again without it, and a warning naming both values."""
     est = _fit(obs, profile, priors, dyn)
     dropped = _dynamics_conflicts(est, dyn)
     if not dropped:
         return est
     again = _fit(obs, profile, priors, [(np.nan, np.inf, d[2]) if name in dropped else d
                                          for name, d in zip(("Ld", "Lq"), dyn)])
-    again.conflicts = {**again.conflicts, **{f"{name}_dynamics": note for name, note in dropped.items()}}
+    for name, (value, sd, apart) in dropped.items():
+        kept = again.values[name]
+        again.conflicts[f"{name}_dynamics"] = (
+            f"the current's sample-to-sample response reads {name} = {value:.4g} H +- {100 * sd:.0f} %, "
+            f"{apart:.0f} of its sds from what the rest of the records say: a cause outside the one-step model "
+            f"(a frame that follows the current through steps, a current sampled away from the carrier's centre); "
+            + (f"{kept:.4g} H from the rest is used" if kept is not None else
+               f"not used, and the rest do not pin {name}"))
     return again
 
 
-def _dynamics_conflicts(est: Estimate, dyn: list) -> dict[str, str]:
+def _dynamics_conflicts(est: Estimate, dyn: list) -> dict[str, tuple[float, float, float]]:
     """Inductances whose sample-to-sample reading (``dyn``) lies more than ``CONFLICT_Z`` of its sds
     from what the fit made of all the records (the steady d voltage reads L_q in the rotor's frame):
-    name -> the warning, both values named; the steady state's is kept. The two read one L_q through
-    different physics, and a reading that misses by many of its own sds has a cause outside its
-    model: a frame that follows the current through steps and load ripple (read so, L_q 22 % to 3x
-    high on seven family drives without an encoder under i_d = 0, with a claimed sd of 1-2 %;
-    without that reading six of them within 2.2 %), a current sampled away from the carrier's centre."""
+    name -> (the reading H, its sd, how many sds apart). The two read one L_q through different
+    physics, and a reading that misses by many of its own sds has a cause outside its model: a frame
+    that follows the current through steps and load ripple (read so, L_q 22 % to 3x high on seven
+    family drives without an encoder under i_d = 0, with a claimed sd of 1-2 %; without that reading
+    six of them within 2.2 %), a current sampled away from the carrier's centre."""
     out = {}
     for name, (value, sd, _) in zip(("Ld", "Lq"), dyn):
         fitted = est.values.get(name)
-        if fitted and np.isfinite(value) and value > 0 and np.isfinite(sd) and sd > 0 \
-                and abs(np.log(value / fitted)) > CONFLICT_Z * sd:
-            out[name] = (f"the current's sample-to-sample response reads {name} = {value:.4g} H +- {100 * sd:.0f} %, "
-                         f"the steady state {fitted:.4g} H ({abs(np.log(value / fitted)) / sd:.0f} sds apart): "
-                         f"a cause outside the one-step model (a frame that follows the current through steps, "
-                         f"a current sampled away from the carrier's centre); the steady state's is used")
+        if fitted and np.isfinite(value) and value > 0 and np.isfinite(sd) and sd > 0:
+            apart = abs(np.log(value / fitted)) / sd
+            if apart > CONFLICT_Z:
+                out[name] = (float(value), float(sd), float(apart))
     return out
 
 
@@ -487,15 +509,7 @@ def _fit(obs: list[Observation], profile: DriveProfile, priors: dict[str, Prior]
         inductances = [n for n, why in asked.items() if why]
         if inductances:
             keys = " and ".join(f"nameplate.{n.lower()}_h" for n in inductances)
-            if all(why == "answers" for why in asked.values() if why):
-                why = ("the drive's voltage answers the current's noise within the sample (a controller without "
-                       "computation delay acting on the samples recorded), so the current loop's broadband voltage "
-                       "does not read the inductance")
-            else:
-                why = ("these records read it differently as the controller's own current samples and as an "
-                       "independent DAQ's (a controller without computation delay answers its own samples' noise "
-                       "within the sample): state sampling.current_source (\"controller\" or \"independent\") "
-                       "in the profile")
+            why = "; ".join(ASKED_WHY[w] for w in dict.fromkeys(asked[n] for n in inductances))
             reason = (f"{' and '.join(inductances)}: {why}; records with current-reference steps, or {keys}; "
                       + reason)
         groups.append({"parameters": names, "reason": reason,

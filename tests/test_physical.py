@@ -396,4 +396,5 @@ def test_a_followed_frames_inductance_that_contradicts_the_steady_state_is_named
     est = estimate(obs, prof)
     assert est.values["Lq"] == pytest.approx(drive.lq_h, rel=0.05)
     note = est.conflicts["Lq_dynamics"]
-    assert f"{lq_dynamics:.4g} H" in note and "sds apart" in note and "steady state's is used" in note, note
+    assert f"{lq_dynamics:.4g} H" in note and "of its sds from what the rest of the records say" in note, note
+    assert f"{est.values['Lq']:.4g} H from the rest is used" in note, note
