@@ -761,29 +761,43 @@ def test_a_figure_the_model_error_moves_is_given_with_a_bound_that_holds_the_tru
     assert bound["rotation_samples"] < bound["delay_samples"]
 
 
-def test_a_sensor_offset_of_a_closed_loop_drive_is_read_through_the_refits_resistance_and_said_so():
+def test_a_sensor_offset_the_controller_acts_on_is_given_as_the_voltage_that_holds_it():
     """A family drive whose own current sensors carry the offset (its controller acts on them): the
     winding carries -o, the voltage R_s o holds it, and the model reads o R_s / R_s,q. Its R_s,q,
-    pinned loosely, is 2.5 times the winding's, so offset_A comes out at 0.41 of the truth; times
-    R_s,q / R_s it is the truth within 5 %. The claim says that it is read through R_s,q, and what
-    would check it."""
-    from agent.effects.current_offset import through_resistance
+    pinned loosely, is 2.5 times the winding's, so the fit's o is 0.41 of the truth. The records'
+    current has no stator-frame DC, so the claim gives the voltage R_s,q o (within 5 % of R_s o,
+    agreeing with the records' stator-frame DC voltage and within its bound) and no offset_A, naming
+    the nameplate's R_s; with a baseline R_s, offset_A is read through it (within 5 % of the truth
+    for the winding's R_s)."""
+    import re
+
+    from agent.effects.current_offset import stator_dc, through_resistance
     from bench.family import draw_effect, truth
 
     drive, base, preps = _family_set(20008, "current_offset")
     doc = ex.explain(base, preps)
     row = doc["candidates"][0]
     assert row["effect"] == "current_offset" and row["significant"]
-    true = truth(drive, "current_offset", draw_effect(drive, "current_offset", 20008), [])["offset_A"]
-    import re
-
-    rs_q = float(re.search(r"read through the refit's R_s,q \(([0-9.]+) ohm\)", row["note"])[1])
-    assert rs_q > 2 * drive.rs_ohm and row["params"]["offset_A"] < 0.5 * true
-    assert row["params"]["offset_A"] * rs_q / drive.rs_ohm == pytest.approx(true, rel=0.05)
-    assert "nameplate.rs_ohm" in row["note"]
-    # a baseline or nameplate R_s that agrees with R_s,q leaves the figure standing; one that does not scales it
-    assert through_resistance({"Rs_q": 1.0}, {"Rs": (1.1, 0.2)}) is None
-    assert "may be 2.5 times the figure" in through_resistance({"Rs_q": 1.0}, {"Rs": (0.4, 0.2)})
+    true = truth(drive, "current_offset", draw_effect(drive, "current_offset", 20008), [])
+    said, bound = row["params"], row["params_bound"]
+    assert list(said)[0] == "offset_voltage_V" and said["offset_A"] is None and bound["offset_A"] is None
+    assert said["offset_voltage_V"] == pytest.approx(true["offset_voltage_V"], rel=0.05)
+    assert abs(said["offset_voltage_V"] - true["offset_voltage_V"]) <= bound["offset_voltage_V"]
+    assert "nameplate.rs_ohm" in row["note"] and "stator-frame DC" in row["note"]
+    fitted = row["unpinned_params"]["offset_A"]
+    rs_q = float(re.search(r"through its R_s,q of ([0-9.]+) ohm", row["note"])[1])
+    v_dc = float(re.search(r"stator-frame DC voltage is ([0-9.]+) V", row["note"])[1])
+    assert v_dc == pytest.approx(true["offset_voltage_V"], rel=0.1)
+    assert rs_q > 2 * drive.rs_ohm and fitted < 0.5 * true["offset_A"]  # the fit's o, read through R_s,q
+    signals = [p.sig for p in preps]
+    assert abs(stator_dc(signals)) < 0.05 * fitted
+    # with the winding's R_s from the baseline (or the nameplate), offset_A is read through it
+    ctx = {"Rs_q": rs_q, "signals": signals}
+    fig = {"params": {"offset_A": fitted}, "params_bound": {"offset_A": 0.001}}
+    got = through_resistance(np.array([fitted, 0.0]), fig, ctx, {"Rs": (drive.rs_ohm, 0.05)})
+    assert got["params"]["offset_A"] == pytest.approx(true["offset_A"], rel=0.05)
+    assert got["params_bound"]["offset_A"] >= 0.1 * got["params"]["offset_A"]
+    assert "read through the baseline's R_s" in got["note"]
 
 
 def test_nothing_is_claimed_where_the_voltage_path_behind_a_pulse_cutting_window_takes_the_error():

@@ -165,15 +165,16 @@ def test_flux_harmonics_found_through_a_speed_step_and_without_an_encoder(seed):
 def test_a_hidden_offset_found_on_a_drive_whose_controller_acts_within_the_sample():
     """No computation delay: identify reads L_d, L_q by the instrumented regression, and the refits'
     one-step does so too (a missing offset's error would hide the difference there). The hidden
-    sensor offsets (0.42 A) are found first, significant, within 20 %. Before: 0.05 A, not
-    significant (the one-step's L_q at 0.58x had taken the base apart)."""
+    sensor offsets (0.42 A) are found first, significant, and the voltage R_s o that holds them
+    (the controller acts on these sensors) within 20 %. Before: 0.05 A, not significant (the
+    one-step's L_q at 0.58x had taken the base apart)."""
     drive, hidden, doc = _explained(20000, "current_offset")
     assert drive.computation_delay == 0
     top = doc["candidates"][0]
     assert top["effect"] == "current_offset" and top["significant"], top
     o = np.asarray(hidden["current_offset"]["offset_a"])
     true = np.hypot((2 * o[0] - o[1] - o[2]) / 3.0, (o[1] - o[2]) / np.sqrt(3.0))
-    assert top["params"]["offset_A"] == pytest.approx(true, rel=0.2)
+    assert top["params"]["offset_voltage_V"] == pytest.approx(true * drive.rs_ohm, rel=0.2)
 
 
 def test_records_without_an_encoder_say_which_frame_they_are_judged_in():

@@ -102,9 +102,11 @@ class Effect:
     #: where unseen, what a refit of it fits is an error of the model's input itself (the voltage path
     #: behind a pulse-cutting window), so a claim it fits clearly better than is withheld all the same
     unseen_is_input: bool = False
-    #: why its size rests on a base value the records pin loosely (``phys``: the refit's base values,
-    #: ``prior``: the baseline's and the nameplate's, {key: (value, relative sd)}), or None
-    read_through: Callable[[dict, dict], str | None] = lambda phys, prior: None
+    #: where its size rests on a base value the records pin loosely: its figures read so
+    #: ``(values, said, ctx, prior) -> {"params", "params_bound", "note"[, "unpinned_params"]}`` (``said``:
+    #: the figures and bounds as fitted; ``prior``: the baseline's and the nameplate's base values,
+    #: {key: (value, relative sd)}), or None where the fit's figures stand
+    read_through: Callable[[np.ndarray, dict, dict, dict], dict | None] = lambda values, said, ctx, prior: None
     _cache: ByIdentity = field(default_factory=lambda: ByIdentity(8), compare=False, repr=False)
 
     def __post_init__(self):
@@ -173,7 +175,11 @@ def smooth_current(sig: Signals) -> tuple[np.ndarray, np.ndarray]:
     return _SMOOTHED.get(sig, _smooth)
 
 
+def smooth(x: np.ndarray, ts: float) -> np.ndarray:
+    """(m, N) ``x`` low-passed at ``SMOOTH_HZ`` (zero phase; as it is for fewer than 31 samples)."""
+    return sosfiltfilt(butter(2, SMOOTH_HZ, fs=1.0 / ts, output="sos"), x, axis=1) if x.shape[1] > 30 else x
+
+
 def _smooth(sig: Signals) -> tuple[np.ndarray, np.ndarray]:
-    sos = butter(2, SMOOTH_HZ, fs=1.0 / sig.ts, output="sos")
-    i_dq = sosfiltfilt(sos, sig.i_dq, axis=1) if sig.n > 30 else sig.i_dq
+    i_dq = smooth(sig.i_dq, sig.ts)
     return i_dq, dq_to_abc(i_dq, sig.theta_e)

@@ -284,14 +284,17 @@ def negligible_as_pinned(eid: str, values, said: dict, ctx: dict) -> bool:
     return bool(res.status == 0)
 
 
-def reported(eid: str, r: Refit, ctx: dict) -> dict:
+def reported(eid: str, r: Refit, ctx: dict, prior: dict | None = None) -> dict:
     """Effect ``eid``'s parameters as refit ``r`` reports them: ``params``, each figure where the
     records pin it down and None where they cannot (as identify reports base values), and then
     ``unpinned_params``, the values the fit landed on for those, which measure nothing;
     ``params_bound``, how far each figure given may be from what the records show
     (:func:`agent.workbench.fitting.judge_figures`: the channels' noise and the model error the refit
     leaves), None where nothing bounds it. An identifiable effect whose records pin only some of its figures (a combination of its
-    parameters) gets a ``note`` naming the others and the records that would separate them."""
+    parameters) gets a ``note`` naming the others and the records that would separate them. Where
+    the effect's size is read through a base value the records pin loosely
+    (:attr:`agent.effects.base.Effect.read_through`, ``prior``: the baseline's), its figures are
+    what that reading gives, and the note says why."""
     eff = get_effect(eid)
     values = eff.report(r.values[eid], ctx)
     if not r.identifiable[eid][0]:
@@ -301,7 +304,8 @@ def reported(eid: str, r: Refit, ctx: dict) -> dict:
     loose = [k for k in values if not pinned[k]]
     bounds = {k: None if k in loose else judged[k][1] for k in values}
     if not loose:
-        return {"params": values, "params_bound": bounds}
+        said = {"params": values, "params_bound": bounds}
+        return eff.read_through(r.values[eid], said, ctx, prior or {}) or said
     return {"params": {k: None if k in loose else v for k, v in values.items()}, "params_bound": bounds,
             "unpinned_params": {k: values[k] for k in loose},
             "note": f"{', '.join(loose)} not separable from these records ("
@@ -762,7 +766,7 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
                "significant": False, "p_value": p_values[-1], "identifiable": identifiable, "at_bound": bound,
                "nrmse_after_dq": _dq(h), "identifiability": how,
                "effect_size": effect_size(h_ctrl, h, _total(h_ctrl), _total(h)),
-               **reported(eid, r, ctx := context(r, own.get(eid, preps), baseline.profile))}
+               **reported(eid, r, ctx := context(r, own.get(eid, preps), baseline.profile), prior)}
         if not identifiable:
             row["note"] = unidentified_note(eid, how)
         elif negligible_as_pinned(eid, path_change(r.values[eid], preps, own[eid]) if eid in own else r.values[eid],
@@ -771,8 +775,6 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
             row["note"] = "; ".join(filter(None, [row.get("note"), (
                 "negligible: its fitted size is below what the base model's own approximations leave "
                 f"({params_floor(eid)}), so it is not claimed")]))
-        if identifiable and (caveat := get_effect(eid).read_through(r.phys, prior)):  # its size rests on a loose base value
-            row["note"] = "; ".join(filter(None, [row.get("note"), caveat]))
         if bound:
             row["note"] = "; ".join(filter(None, [get_effect(eid).at_bound or (
                 "at bound: the fit wants it beyond its physical range, so it is not this effect"), row.get("note")]))
@@ -901,7 +903,7 @@ def add_effects(baseline, preps: list[Prepared], effect_ids) -> tuple[object, di
     r = nested(ctrl, preps, new, base, prior)
     ctx = context(r, preps, baseline.profile)
     h_before, h_ctrl, h_after = heldout(model, preps), heldout(ctrl.model, preps), heldout(r.model, preps)
-    said = {e: reported(e, r, ctx) for e in have + new}
+    said = {e: reported(e, r, ctx, prior) for e in have + new}
     figures = {"nrmse_before": _total(h_before), "nrmse_control": _total(h_ctrl), "nrmse_after": _total(h_after),
                "params": {e: said[e]["params"] for e in have + new},
                "params_bound": {e: said[e].get("params_bound") for e in have + new},

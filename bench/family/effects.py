@@ -211,7 +211,9 @@ def truth(drive: Drive, effect_id: str, draw: dict, records) -> dict:
     """The true value of an effect in the workbench's units.
 
     * current_offset: ``offset_A`` = |(alpha, beta)| of the per-phase offsets (amplitude-invariant
-      Clarke, alpha = (2 o_a - o_b - o_c)/3, beta = (o_b - o_c)/sqrt 3), and ``offset_abc_A``;
+      Clarke, alpha = (2 o_a - o_b - o_c)/3, beta = (o_b - o_c)/sqrt 3), ``offset_abc_A``, and
+      ``offset_voltage_V`` = R_s offset_A, the stator-frame DC voltage that holds -o in the winding
+      (the controller acts on the offset sensors);
     * current_gain_mismatch: ``gain_b``, ``gain_c`` = (1 + g_x)/(1 + g_a) - 1;
     * resistance_drift: ``dR_dt_ohm_per_s`` = dR_s/dt at each record's middle, mean over ``records``
       (their meta), and ``R_s_start_ohm`` (mean);
@@ -233,7 +235,8 @@ def truth(drive: Drive, effect_id: str, draw: dict, records) -> dict:
     if effect_id == "current_offset":
         o = np.asarray(draw["offset_a"])
         alpha, beta = (2 * o[0] - o[1] - o[2]) / 3.0, (o[1] - o[2]) / SQRT3
-        return {"offset_A": float(math.hypot(alpha, beta)), "offset_abc_A": [float(x) for x in o]}
+        return {"offset_A": float(math.hypot(alpha, beta)), "offset_abc_A": [float(x) for x in o],
+                "offset_voltage_V": float(math.hypot(alpha, beta)) * drive.rs_ohm}
     if effect_id == "current_gain_mismatch":
         g = draw["gain_error"]
         return {"gain_b": (1 + g[1]) / (1 + g[0]) - 1, "gain_c": (1 + g[2]) / (1 + g[0]) - 1}
