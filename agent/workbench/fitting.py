@@ -534,14 +534,18 @@ def effect_bounds(effect_ids, base: dict | None) -> dict:
             for e in effect_ids}
 
 
-def at_bound(values: np.ndarray, bounds: tuple[np.ndarray, np.ndarray], effect=None) -> bool:
+def at_bound(values: np.ndarray, bounds: tuple[np.ndarray, np.ndarray], effect=None, pinned=None) -> bool:
     """Whether any parameter sits on its physical bound (then the data wanted it beyond physics);
-    the zero of a signed quantity's one-sided part (``Param.split``) is no bound."""
+    the zero of a signed quantity's one-sided part (``Param.split``) is no bound, nor is the bound
+    of a parameter the records do not pin (``pinned``: per parameter, default all): the fit's
+    value of it measures nothing, so neither does its sitting there (a cross-saturation held at
+    its bound by a fit that cannot see it under i_d = 0)."""
     lo, hi = bounds
     tol = 1e-6 * np.maximum(np.abs(values), 1e-12)
     split = np.array([p.split for p in effect.params]) if effect is not None else np.zeros(len(values), dtype=bool)
+    seen = np.ones(len(values), dtype=bool) if pinned is None else np.asarray(pinned, dtype=bool)
     low = np.isfinite(lo) & (values <= lo + tol) & ~(split & (lo == 0.0))
-    return bool(np.any(low) or np.any(np.isfinite(hi) & (values >= hi - tol)))
+    return bool(np.any(seen & (low | (np.isfinite(hi) & (values >= hi - tol)))))
 
 
 @dataclass
@@ -838,7 +842,8 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
         if why is not None:
             judged[eid] = (False, {"stage": UNSEEN, "why": why})
     return Refit(tuple(effect_ids), model, phys, values, cost, judged,
-                 {e: at_bound(values[e], bounds[e], get_effect(e)) for e in values}, info)
+                 {e: at_bound(values[e], bounds[e], get_effect(e), params_pinned(get_effect(e), info.get(e)))
+                  for e in values}, info)
 
 
 def _one_step_rel(step: OneStep, effect) -> float:
@@ -954,15 +959,34 @@ def judge_figures(effect, values: np.ndarray, info: dict | None, ctx: dict) -> d
         if size == 0.0 or not np.isfinite(size):
             out[key] = (size == 0.0, None)
             continue
-        se = _one_step_se(info, typ, g) if "cov" in info else None
-        share, part = _least_kept(seen, g, size) if "kept" in seen else (0.0, 0.0)
-        pinned = (se is not None and se <= PRECISION * size) or (
-            "kept" in info and share >= SHARE_FLOOR and part >= max(VISIBLE_FLOOR, info.get("left", 0.0)))
+        pinned, se, part = _pins(info, typ, g, size)
         parts = ([2.0 * se] if se is not None else []) + (
             [size * max(VISIBLE_FLOOR, seen.get("left", 0.0)) / max(part, 1e-300)] if "kept" in seen else [])
         bound = max(parts, default=None)
         out[key] = (bool(pinned), float(bound) if bound is not None and np.isfinite(bound) else None)
     return out
+
+
+def _pins(info: dict, typ: np.ndarray, g: np.ndarray, size: float) -> tuple[bool, float | None, float]:
+    """(pinned, one-step se, free-run part kept) of a figure of gradient ``g`` (per typical-size
+    step) changing by ``size`` over such a step: :func:`judge_figures`'s criterion."""
+    seen = info.get("run", info)
+    se = _one_step_se(info, typ, g) if "cov" in info else None
+    share, part = _least_kept(seen, g, size) if "kept" in seen else (0.0, 0.0)
+    pinned = (se is not None and se <= PRECISION * size) or (
+        "kept" in info and share >= SHARE_FLOOR and part >= max(VISIBLE_FLOOR, info.get("left", 0.0)))
+    return bool(pinned), se, part
+
+
+def params_pinned(effect, info: dict | None) -> np.ndarray | None:
+    """Per parameter of ``effect``, whether the records pin it (:func:`judge_figures`'s criterion
+    for the parameter itself as the figure); None without ``info`` (every one counts) and for an
+    effect whose bound means something else than physics (``Effect.at_bound``: the voltage path's
+    columns' reach, which an unpinned split of the path reaches too)."""
+    if not info or effect.at_bound:
+        return None
+    typ = typical_sizes([effect])[effect.id]
+    return np.array([_pins(info, typ, np.eye(typ.size)[j], 1.0)[0] for j in range(typ.size)])
 
 
 UNSTABLE_GAIN = 10.0  #: a free run beyond this many times the record's largest current has diverged
