@@ -70,6 +70,7 @@ class Scenario:
     step_pct: float = 0.0  #: each record's load steps up by this many %-points a quarter into it
     more: tuple[str, ...] = ()  #: further figures with the same true value, judged alike (the worst error counts)
     alt: str = ""  #: the figure judged where the records leave the headline null (the same true value)
+    alt_truth: Callable[[list, float], float] | None = None  #: its own true value, where it is another quantity
 
 
 def _const(recs, value):
@@ -114,6 +115,11 @@ class Rig:
     @staticmethod
     def saturation_truth(recs, value):
         return value
+
+    @staticmethod
+    def offset_voltage_truth(recs, value):
+        """R_s o: the stator-frame DC voltage that holds an offset o (A) off the winding, V."""
+        return value * float(np.mean([r.meta["R_s"] for r in recs]))
 
 
 class Motulator:
@@ -166,6 +172,13 @@ class Motulator:
         return float(np.mean(amps))
 
     @staticmethod
+    def offset_voltage_truth(recs, value):
+        """R_s o: the stator-frame DC voltage that holds an offset o (A) off the winding, V."""
+        from bench.thirdparty.motulator_drive import R_S
+
+        return value * R_S
+
+    @staticmethod
     def saturation_truth(recs, value):
         """Chord L_q drop at rated current of motulator's i_q = psi_q/L_q (1 + a (psi_q/psi_qr)^2)."""
         import scipy.optimize
@@ -183,7 +196,9 @@ def scenarios(sim) -> dict[str, Scenario]:
     its true chord drop at rated current computed from it)."""
     sat = 0.15 if sim.name == "rig" else 0.35  # motulator's a: a chord drop of about 0.14
     return {
-        "current_offset": Scenario(0.1, (80.0,), False, "offset_A", _const),
+        # an offset the drive's controller acts on shows as the voltage R_s o that holds it
+        "current_offset": Scenario(0.1, (80.0,), False, "offset_A", _const, alt="offset_voltage_V",
+                                   alt_truth=sim.offset_voltage_truth),
         "current_gain_mismatch": Scenario(0.03, (80.0,), False, "gain_b", _const),
         "resistance_drift": Scenario(0.2, (60.0, 100.0), False, "dR_dt_ohm_per_s", sim.drift_truth),
         # the simulators hold the voltage in abc (advance 0): the pinned sum delay + advance is the delay too
@@ -233,7 +248,8 @@ class Bench:
         loads = sc.loads * (4 // len(sc.loads)) + sc.loads[: 4 % len(sc.loads)]
         recs = self.sim.records({effect: sc.value}, loads, self.seconds, 100, sc.reference, sc.encoder, sc.step_pct)
         doc = self.explain(recs, sc.reference, sc.nameplate)
-        row = judge(doc, effect, sc.key, sc.truth(recs, sc.value), sc.more, sc.alt)
+        row = judge(doc, effect, sc.key, sc.truth(recs, sc.value), sc.more, sc.alt,
+                    sc.alt_truth(recs, sc.value) if sc.alt_truth else None)
         row["scenario"] = name
         self.say(f"{self.sim.name} {name}: rank {row['rank']}, significant {row['significant']}, "
                  f"gain {row['gain']:.2f}, error {row['error']:+.0%} ({time.perf_counter() - t0:.0f} s)")
@@ -261,15 +277,17 @@ class Bench:
         return {"sets": n_sets, "claiming": sum(bool(c) for c in claims), "claims": claims}
 
 
-def judge(doc: dict, effect: str, key: str, true: float, more: tuple[str, ...] = (), alt: str = "") -> dict:
+def judge(doc: dict, effect: str, key: str, true: float, more: tuple[str, ...] = (), alt: str = "",
+          alt_true: float | None = None) -> dict:
     """The brief's figures of one scenario from its explain document; ``more``: further figures with
     the same true value (the worst error is the row's); ``alt``: the figure judged instead where the
-    records leave ``key`` null and pin it. A figure the records do not pin is reported null by
-    explain: its fitted value is then read from ``unpinned_params`` and the row says so."""
+    records leave ``key`` null and pin it (against ``alt_true`` where given). A figure the records do
+    not pin is reported null by explain: its fitted value is then read from ``unpinned_params`` and
+    the row says so."""
     names = [c["effect"] for c in doc["candidates"]]
     row = doc["candidates"][names.index(effect)]
     if alt and row["params"].get(key) is None and row["params"].get(alt) is not None:
-        key = alt
+        key, true = alt, true if alt_true is None else alt_true
     wrong = min(c["nrmse_after"] for c in doc["candidates"] if c["effect"] != effect)
 
     def fitted(k):
