@@ -800,9 +800,10 @@ def test_a_sensor_offset_the_controller_acts_on_is_given_as_the_voltage_that_hol
     assert "read through the baseline's R_s" in got["note"]
 
 
-def test_a_parameter_the_records_do_not_pin_is_no_bound():
-    """at_bound counts only the parameters the records pin: an unpinned one sitting at its limit
-    measures nothing (the zero of a split part never counts)."""
+def test_a_bound_the_records_do_not_push_is_no_bound():
+    """at_bound counts only the parameters the records push onto their bound (``pinned``, from the
+    refit's normal equations): one left there for want of anything pulling it measures nothing
+    (the zero of a split part never counts)."""
     from agent.effects import get as get_effect
     from agent.workbench.fitting import at_bound
 
@@ -816,7 +817,7 @@ def test_a_parameter_the_records_do_not_pin_is_no_bound():
 
 def test_a_saturation_whose_cross_term_the_records_cannot_see_is_claimed_by_what_they_pin():
     """Family drive 20043 (MTPA, an encoder, the q chord inductance 22 % lower at rated current):
-    the refit's cross-saturation sat at its limit, which the records do not pin, and the claim was
+    the refit's cross-saturation sat at its limit, where the records do not push it, and the claim was
     withheld as "at bound" although the saturation explained 99 % (p = 1.5e-8). Now it is claimed,
     the cross term is not said, and the L_q drop lies within its bound of the truth and within 25 %."""
     from bench.family import draw_effect, truth

@@ -536,10 +536,11 @@ def effect_bounds(effect_ids, base: dict | None) -> dict:
 
 def at_bound(values: np.ndarray, bounds: tuple[np.ndarray, np.ndarray], effect=None, pinned=None) -> bool:
     """Whether any parameter sits on its physical bound (then the data wanted it beyond physics);
-    the zero of a signed quantity's one-sided part (``Param.split``) is no bound, nor is the bound
-    of a parameter the records do not pin (``pinned``: per parameter, default all): the fit's
-    value of it measures nothing, so neither does its sitting there (a cross-saturation held at
-    its bound by a fit that cannot see it under i_d = 0)."""
+    the zero of a signed quantity's one-sided part (``Param.split``) is no bound, nor is a bound
+    the records do not push the parameter beyond (``pinned``: per parameter, default all; the free
+    run's: whether relaxing the bound would lower the fit's error visibly, :func:`refit`): a fit
+    that leaves a parameter there for want of anything pulling it measures nothing by it (a
+    cross-saturation at its limit under i_d = 0, which the records barely see)."""
     lo, hi = bounds
     tol = 1e-6 * np.maximum(np.abs(values), 1e-12)
     split = np.array([p.split for p in effect.params]) if effect is not None else np.zeros(len(values), dtype=bool)
@@ -733,6 +734,8 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
             prior_h[j:j + w.size] += w * value
         j += len(e.params)
 
+    normal = {}  # the last solve's normal equations (G, h)
+
     def solve(z):
         g, h, parts = prior_g.copy(), prior_h.copy(), []
         with np.errstate(over="ignore", invalid="ignore"):
@@ -743,6 +746,7 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
                 parts.append((y, s))
         if not (np.all(np.isfinite(g)) and np.all(np.isfinite(h))):
             return None, parts  # a trial step made the free run diverge
+        normal.update(g=g, h=h)
         return bounded_lstsq(g, h, lower, upper), parts
 
     n_res = sum(2 * len(range(0, d[0].size, DECIMATE)) for d in data)
@@ -812,6 +816,7 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
         return values, phys, model, fit_cost(model, preps)
 
     values, phys, model, cost = finish(sol.x, alpha)
+    chosen = (sol.x, alpha)
     if pen.any():
         # The combinations the linearisation calls unseen are held at zero and the base refitted with
         # them so, from the start: where that costs the fit at least VISIBLE_FLOOR (as an NRMSE of the
@@ -827,6 +832,21 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
             held_fit = finish(again.x, a_held)
             if held_fit[3] - cost < VISIBLE_FLOOR ** 2 * i_fit:
                 values, phys, model, cost = held_fit
+                chosen = (again.x, a_held)
+        prior_g -= pen
+    # which free-run parameters sit on a bound the records push them beyond: relaxing it would lower
+    # the fit's squared error by at least VISIBLE_FLOOR's share (the active constraint's multiplier)
+    pushed = {}
+    if solved and np.all(np.isfinite(chosen[1])) and solve(chosen[0])[0] is not None:
+        grad = normal["h"] - normal["g"] @ chosen[1]  # minus the gradient of half the squared error
+        gain = grad ** 2 / np.maximum(np.diag(normal["g"]), 1e-300)
+        tol = 1e-6 * np.maximum(np.abs(chosen[1]), 1e-12)
+        out = ((chosen[1] >= upper - tol) & (grad > 0)) | ((chosen[1] <= lower + tol) & (grad < 0))
+        beyond = out & (gain >= (VISIBLE_FLOOR * i_norm) ** 2)
+        j = n_base
+        for e in solved:
+            pushed[e.id] = beyond[j:j + len(e.params)]
+            j += len(e.params)
     # what the refit leaves on the fit segments beyond the channels' noise, as an NRMSE
     left = float(np.sqrt(max(cost, 0.0) / max(i_fit, 1e-300))) if np.isfinite(cost) else np.inf
     for eid, inf in run.items():  # the one-step's figures are bounded by the free run's response too
@@ -842,7 +862,7 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
         if why is not None:
             judged[eid] = (False, {"stage": UNSEEN, "why": why})
     return Refit(tuple(effect_ids), model, phys, values, cost, judged,
-                 {e: at_bound(values[e], bounds[e], get_effect(e), params_pinned(get_effect(e), info.get(e)))
+                 {e: at_bound(values[e], bounds[e], get_effect(e), None if get_effect(e).at_bound else pushed.get(e))
                   for e in values}, info)
 
 
@@ -976,17 +996,6 @@ def _pins(info: dict, typ: np.ndarray, g: np.ndarray, size: float) -> tuple[bool
     pinned = (se is not None and se <= PRECISION * size) or (
         "kept" in info and share >= SHARE_FLOOR and part >= max(VISIBLE_FLOOR, info.get("left", 0.0)))
     return bool(pinned), se, part
-
-
-def params_pinned(effect, info: dict | None) -> np.ndarray | None:
-    """Per parameter of ``effect``, whether the records pin it (:func:`judge_figures`'s criterion
-    for the parameter itself as the figure); None without ``info`` (every one counts) and for an
-    effect whose bound means something else than physics (``Effect.at_bound``: the voltage path's
-    columns' reach, which an unpinned split of the path reaches too)."""
-    if not info or effect.at_bound:
-        return None
-    typ = typical_sizes([effect])[effect.id]
-    return np.array([_pins(info, typ, np.eye(typ.size)[j], 1.0)[0] for j in range(typ.size)])
 
 
 UNSTABLE_GAIN = 10.0  #: a free run beyond this many times the record's largest current has diverged
