@@ -44,8 +44,8 @@ def columns(sig):
 def report(v, ctx):
     lam, c = (float(x) for x in v)
     i_r = ctx["i_rated"]
-    chord = ctx.get("Lq_x") or ctx["Lq"]  # psi_q / i_q at low current: L_q as omega_e L_q i_q on the d axis takes it
-    return {"lq_drop_at_rated": lam / chord * (i_r / I_REF) ** 2, "cross_dpsi_d_at_rated_Wb": c * i_r ** 2 / I_REF,
+    # against psi_q / i_q at low current: L_q as the d axis takes it in omega_e L_q i_q
+    return {"lq_drop_at_rated": lam / ctx["Lq_x"] * (i_r / I_REF) ** 2, "cross_dpsi_d_at_rated_Wb": c * i_r ** 2 / I_REF,
             "lambda_H": lam}
 
 

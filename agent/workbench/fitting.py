@@ -816,7 +816,7 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
         return values, phys, model, fit_cost(model, preps)
 
     values, phys, model, cost = finish(sol.x, alpha)
-    chosen = (sol.x, alpha)
+    chosen = (sol.x, alpha)  # normal holds solve(sol.x)'s equations until a hold is tried
     if pen.any():
         # The combinations the linearisation calls unseen are held at zero and the base refitted with
         # them so, from the start: where that costs the fit at least VISIBLE_FLOOR (as an NRMSE of the
@@ -834,10 +834,12 @@ def refit(preps: list[Prepared], form: str, fe_hz: float, effect_ids=(), start: 
                 values, phys, model, cost = held_fit
                 chosen = (again.x, a_held)
         prior_g -= pen
+        if solve(chosen[0])[0] is None:  # the chosen point's equations without the hold
+            normal.clear()
     # which free-run parameters sit on a bound the records push them beyond: relaxing it would lower
     # the fit's squared error by at least VISIBLE_FLOOR's share (the active constraint's multiplier)
     pushed = {}
-    if solved and np.all(np.isfinite(chosen[1])) and solve(chosen[0])[0] is not None:
+    if solved and normal and np.all(np.isfinite(chosen[1])):
         grad = normal["h"] - normal["g"] @ chosen[1]  # minus the gradient of half the squared error
         gain = grad ** 2 / np.maximum(np.diag(normal["g"]), 1e-300)
         tol = 1e-6 * np.maximum(np.abs(chosen[1]), 1e-12)
@@ -979,23 +981,15 @@ def judge_figures(effect, values: np.ndarray, info: dict | None, ctx: dict) -> d
         if size == 0.0 or not np.isfinite(size):
             out[key] = (size == 0.0, None)
             continue
-        pinned, se, part = _pins(info, typ, g, size)
+        se = _one_step_se(info, typ, g) if "cov" in info else None
+        share, part = _least_kept(seen, g, size) if "kept" in seen else (0.0, 0.0)
+        pinned = (se is not None and se <= PRECISION * size) or (
+            "kept" in info and share >= SHARE_FLOOR and part >= max(VISIBLE_FLOOR, info.get("left", 0.0)))
         parts = ([2.0 * se] if se is not None else []) + (
             [size * max(VISIBLE_FLOOR, seen.get("left", 0.0)) / max(part, 1e-300)] if "kept" in seen else [])
         bound = max(parts, default=None)
         out[key] = (bool(pinned), float(bound) if bound is not None and np.isfinite(bound) else None)
     return out
-
-
-def _pins(info: dict, typ: np.ndarray, g: np.ndarray, size: float) -> tuple[bool, float | None, float]:
-    """(pinned, one-step se, free-run part kept) of a figure of gradient ``g`` (per typical-size
-    step) changing by ``size`` over such a step: :func:`judge_figures`'s criterion."""
-    seen = info.get("run", info)
-    se = _one_step_se(info, typ, g) if "cov" in info else None
-    share, part = _least_kept(seen, g, size) if "kept" in seen else (0.0, 0.0)
-    pinned = (se is not None and se <= PRECISION * size) or (
-        "kept" in info and share >= SHARE_FLOOR and part >= max(VISIBLE_FLOOR, info.get("left", 0.0)))
-    return bool(pinned), se, part
 
 
 UNSTABLE_GAIN = 10.0  #: a free run beyond this many times the record's largest current has diverged
