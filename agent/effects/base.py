@@ -103,7 +103,8 @@ class Effect:
     #: behind a pulse-cutting window), so a claim it fits clearly better than is withheld all the same
     unseen_is_input: bool = False
     #: where its size rests on a base value the records pin loosely: its figures read so
-    #: ``(values, said, ctx, prior) -> {"params", "params_bound", "note"[, "unpinned_params"]}`` (``said``:
+    #: ``(values, said, ctx, prior) -> {"params", "params_bound", "note"[, "unpinned_params", "contradicted"]}``
+    #: (``contradicted``: the records' direct reading of the effect refutes the fit, no claim; ``said``:
     #: the figures and bounds as fitted; ``prior``: the baseline's and the nameplate's base values,
     #: {key: (value, relative sd)}), or None where the fit's figures stand
     read_through: Callable[[np.ndarray, dict, dict, dict], dict | None] = lambda values, said, ctx, prior: None

@@ -1,22 +1,100 @@
 """Relative gain errors of the acquisition's phase-b and phase-c current sensors (against phase a).
 
 Family: i_x,meas = (1 + g_x) i_x for x = b, c; a gain error common to all three is a scale of the
-current the motor parameters take, so phase a is the reference.
+current the motor parameters take, so phase a is the reference. In the dq frame the mismatch is a
+negative sequence, eps i*, with 3 eps = g_b a^2 + g_c a (a = e^{j 2 pi / 3}). Where the drive's
+controller acts on the same sensors, it holds the measured current at its reference, the winding
+carries -eps i* and the mismatch shows only as the voltage that drives it, which the model reads
+through its own impedance R_s,q - j omega_e L: on the drive family R_s,q was 2-4 times the
+winding's, and eps came out rotated by 10-40 degrees, enough to put a per-phase figure 50-150 %
+off. The phase currents' sum reads the sensors directly (:func:`sensor_sum`): a three-wire
+winding's currents sum to zero, so the measured sum is g_b i_b + g_c i_c relative to phase a,
+whatever the controller does.
 
 Degrees of freedom: g_b, g_c (dimensionless, each within +-0.1: a sensor class). Reported: gain_b
-(headline), gain_c.
+(headline), gain_c; read off the phase currents' sum where the records carry three sensors.
 """
 
 import numpy as np
 
 from agent.effects.base import Effect, Param, smooth_current
 from agent.frames import CLARKE, ab_to_dq
+from agent.physical import zero_sequence_sigma
 
 
 def columns(sig):
     # measured i_x = (1 + g_x) i_x: error g_x i_x along phase x's Clarke direction (A per unit gain)
     i_abc = smooth_current(sig)[1]
     return np.stack([ab_to_dq(CLARKE[:2, x:x + 1] * i_abc[x], sig.theta_e) for x in (1, 2)])
+
+
+COMPUTED = 1e-6  #: the phase currents' sum below this share of their rms on every record: one phase is computed
+
+
+def sensor_sum(signals) -> tuple[np.ndarray, np.ndarray] | None:
+    """(g_b, g_c) and their standard errors read off the phase currents' sum, or None where it is
+    zero sample by sample (two sensors, the third phase computed from them) or not recorded.
+
+    A three-wire winding's currents sum to zero, so the measured ones m_x = (1 + g_a)(1 + g_x) i_x
+    (g_x relative to phase a) obey -m_a = u_b m_b + u_c m_c with u_x = 1/(1 + g_x), exactly: least
+    squares over the records with a constant per record (the offsets), the regressors' own noise
+    (:func:`agent.physical.zero_sequence_sigma`) taken out of their Gram matrix, then
+    g_x = 1/u_x - 1. Standard errors: the residual's, or the records' scatter where larger."""
+    xtx, xty, rss, n, k, each = np.zeros((2, 2)), np.zeros(2), 0.0, 0, 0, []
+    for sig in signals:
+        m = sig.i_abc
+        if m is None:
+            return None
+        z = m.sum(axis=0)
+        if np.sqrt(np.mean((z - z.mean()) ** 2)) < COMPUTED * np.sqrt(np.mean(m ** 2)):
+            return None
+        x, y = (m[1:] - m[1:].mean(axis=1, keepdims=True)).T, -(m[0] - m[0].mean())
+        gram = x.T @ x - sig.n * zero_sequence_sigma(m) ** 2 * np.eye(2)  # less the regressors' own noise
+        u_k = np.linalg.solve(gram, x.T @ y)
+        xtx, xty = xtx + gram, xty + x.T @ y
+        rss, n, k = rss + float(np.sum((y - x @ u_k) ** 2)), n + sig.n, k + 1
+        each.append(u_k)
+    u = np.linalg.solve(xtx, xty)
+    se_u = np.sqrt(np.diag(np.linalg.inv(xtx)) * rss / max(n - 3 * k, 1))
+    if k > 1:  # the samples' residual is not white (quantisation, ripple): the records' own scatter counts too
+        se_u = np.maximum(se_u, np.std(each, axis=0, ddof=1) / np.sqrt(k))
+    return 1.0 / u - 1.0, se_u / u ** 2
+
+
+def negative_sequence(g) -> complex:
+    """eps (dimensionless) of relative gains (g_b, g_c): the measured dq current's eps i*."""
+    a = np.exp(2j * np.pi / 3)
+    return complex((g[0] * a * a + g[1] * a) / 3.0)
+
+
+AGREE = 0.5  #: the sum's mismatch below this share of the fit's: what the fit takes is not the sensors'
+
+
+def through_sum(values, said: dict, ctx: dict, prior: dict) -> dict | None:
+    """The per-phase figures read off the phase currents' sum (:func:`sensor_sum`) where the records
+    carry three sensors: the fit reads the mismatch through the model's impedance where the
+    controller acts on the sensors (module docstring). Bounds: 3 standard errors. Where the sum shows less than
+    ``AGREE`` of the fit's mismatch (beyond its noise), what the fit takes is another 2 f_e pattern:
+    ``contradicted``, no figures. None where one phase is computed (the fit's figures stand)."""
+    read = sensor_sum(ctx["signals"])
+    if read is None:
+        return None
+    g, se = read
+    eps_fit, eps_sum = negative_sequence(values), negative_sequence(g)
+    se_eps = float(np.hypot(*se)) / 3.0
+    names = list(said["params"])
+    if abs(eps_sum) + 3.0 * se_eps < AGREE * abs(eps_fit):
+        return {"params": dict.fromkeys(names), "params_bound": dict.fromkeys(names),
+                "unpinned_params": dict(zip(names, map(float, values))), "contradicted": True,
+                "note": f"the phase currents' sum shows a mismatch of {abs(eps_sum):.2g} (negative sequence, "
+                        f"+-{se_eps:.1g}) against the fit's {abs(eps_fit):.2g}: the sensors agree, and what the "
+                        f"fit takes is another pattern at 2 f_e in dq, so it is not claimed"}
+    turn = np.degrees(np.angle(eps_fit / eps_sum)) if abs(eps_fit) > 0 and abs(eps_sum) > 0 else 0.0
+    return {"params": dict(zip(names, map(float, g))),
+            "params_bound": dict(zip(names, map(float, 3.0 * se))),
+            "note": f"read off the phase currents' sum (a three-wire winding's currents sum to zero, so the sum is the "
+                    f"sensors' mismatch); the fit reads it through the model's impedance, rotated by {turn:+.0f} "
+                    f"degrees and {abs(eps_fit) / max(abs(eps_sum), 1e-12):.2f} times its size"}
 
 
 EFFECT = Effect(
@@ -28,7 +106,9 @@ EFFECT = Effect(
             Param("g_c", "-", "relative gain error of phase c", 0.03, -0.1, 0.1)),
     columns=columns,
     report=lambda v, ctx: {"gain_b": float(v[0]), "gain_c": float(v[1])},
-    signature="2 fe ripple and a DC shift in dq; a negative-sequence fe line in the phase residual",
+    signature="2 fe ripple and a DC shift in dq; a negative-sequence fe line in the phase residual; "
+              "a fe line in the phase currents' sum",
     dq_orders=(0, 2), abc_orders=(1,),
     reveals="any record with current",
+    read_through=through_sum,
 )

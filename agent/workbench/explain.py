@@ -33,6 +33,7 @@ import scipy.stats
 from agent.decision import operating_point_notes
 from agent.effects import EFFECTS
 from agent.effects import get as get_effect
+from agent.effects.current_gain_mismatch import sensor_sum
 from agent.effects.voltage_delay import MOVES, REACH, move_toward
 from agent.errors import InputError
 from agent.evidence import effective_size
@@ -622,8 +623,11 @@ def twin_note(first: str, other: str, share: float, basis: str = "reproduced",
 
 
 def _readable(row: dict) -> bool:
-    """The records pin the candidate within its physical range, beyond the model's own approximations."""
-    return bool(row["identifiable"] and not row["at_bound"] and not row.get("negligible"))
+    """The records pin the candidate within its physical range, beyond the model's own approximations,
+    and their direct reading of it does not contradict the fit (``contradicted``,
+    :attr:`agent.effects.base.Effect.read_through`)."""
+    return bool(row["identifiable"] and not row["at_bound"] and not row.get("negligible")
+                and not row.get("contradicted"))
 
 
 def _claimable(row: dict) -> bool:
@@ -841,14 +845,40 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
     return doc
 
 
+SENSOR_CLASS = 0.005  #: a phase sensor's gain off phase a's by more than this (and 3 standard errors) is said
+
+
+def sensor_gains(preps: list[Prepared], rows: list) -> tuple[dict | None, str | None]:
+    """The current sensors' gains against phase a read off the phase currents' sum
+    (:func:`agent.effects.current_gain_mismatch.sensor_sum`): {"gain_b", "gain_c", "bound"} (None
+    where phase c is computed), and a warning where they differ beyond ``SENSOR_CLASS`` and no claim
+    says so already. The sum reads the sensors whatever the model does: a mismatch the drive's
+    controller acts on shows in the model only through its impedance, where the refits' R_s,q and L
+    can take it, so no candidate may gain from it."""
+    read = sensor_sum([p.sig for p in preps])
+    if read is None:
+        return None, None
+    g, se = read
+    out = {"gain_b": float(g[0]), "gain_c": float(g[1]), "bound": {"gain_b": float(3 * se[0]), "gain_c": float(3 * se[1])}}
+    said = any(r["effect"] == "current_gain_mismatch" and r["significant"] for r in rows)
+    if said or not np.any((np.abs(g) > SENSOR_CLASS) & (np.abs(g) > 3 * se)):
+        return out, None
+    return out, (f"the phase currents' sum shows the current sensors of phases b and c "
+                 f"{100 * g[0]:+.2f} % and {100 * g[1]:+.2f} % off phase a's gain (+-{300 * max(se):.2g} %): a three-wire winding's currents "
+                 f"sum to zero, so this is the sensors' mismatch, whatever the refits gain from current_gain_mismatch "
+                 f"(a mismatch the drive's controller acts on reaches the model only through its impedance)")
+
+
 def _document(baseline, preps: list[Prepared], before: dict, h_ctrl: dict | None, dyn: dict, rows: list,
               t0: float) -> dict:
     """explain's CONTRACT document around its candidate ``rows``."""
     doc = {"nrmse_before": _total(before), "nrmse_control": None if h_ctrl is None else _total(h_ctrl),
            "noise_floor": None if h_ctrl is None or h_ctrl["noise_floor"] is None else h_ctrl["noise_floor"]["total"],
            "nrmse_before_dq": _dq(before), "candidates": rows, "control_params": None, "control_is_model": False,
-           "dynamics": dyn, "records": [p.source for p in preps], "warnings": operating_warnings(baseline, preps),
-           "seconds": time.perf_counter() - t0}
+           "dynamics": dyn, "records": [p.source for p in preps], "warnings": operating_warnings(baseline, preps)}
+    doc["sensor_gains"], warning = sensor_gains(preps, rows)
+    doc["warnings"].extend(filter(None, [warning]))
+    doc["seconds"] = time.perf_counter() - t0
     if not before["stable"]:
         doc["note_before"] = before["note"]
     return doc
