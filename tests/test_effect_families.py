@@ -340,7 +340,7 @@ def test_a_fit_whose_mismatch_the_sum_does_not_show_is_contradicted():
     agree = [_phase_currents([0.0, 0.0, 0.0], [0.0] * 3, 0.05, k) for k in range(4)]
     got = through_sum(np.array([0.03, -0.03]), said, {"signals": agree}, {})
     assert got["contradicted"] and got["params"] == {"gain_b": None, "gain_c": None}
-    assert "the sensors agree" in got["note"]
+    assert "the sensors differ by less than a quarter of what the fit takes" in got["note"]
     differ = [_phase_currents([0.0, 0.02, 0.04], [0.0] * 3, 0.05, k) for k in range(4)]
     got = through_sum(np.array([0.01, 0.045]), said, {"signals": differ}, {})
     assert not got.get("contradicted")
