@@ -373,7 +373,9 @@ def test_a_mismatch_no_refit_gains_from_is_still_said_from_the_sum():
     2.2 % below phase a, the gain mismatch's refit gains nothing (the model's impedance takes the
     voltage that holds the mismatch), so no candidate names it. The document's ``sensor_gains`` read
     both within 0.05 percentage points and a warning says so; the same drive's null set reads zero
-    within its bound and warns of nothing."""
+    within its bound and warns of nothing. The unidentified candidate's own figures are the sum's.
+    A fit that leaves the figures unpinned (20012: "its response is pinned, no figure of it is")
+    reports the sum's as well."""
     from bench.family import draw_effect, truth
     from tests.test_workbench_claims import _family_set
 
@@ -384,8 +386,16 @@ def test_a_mismatch_no_refit_gains_from_is_still_said_from_the_sum():
     for key in ("gain_b", "gain_c"):
         assert doc["sensor_gains"][key] == pytest.approx(true[key], abs=5e-4)
     assert any("phase currents' sum shows the current sensors" in w and "-4.8" in w for w in doc["warnings"])
+    row = doc["candidates"][0]  # unidentified, yet its figures are the sum's, and its note says both
+    assert not row["identifiable"] and "not identifiable" in row["note"] and "phase currents' sum" in row["note"]
+    assert row["params"] == pytest.approx({k: doc["sensor_gains"][k] for k in ("gain_b", "gain_c")})
     _, base, preps = _family_set(20004, None)
     doc = explain(base, preps, candidates=["current_gain_mismatch"])
     for key in ("gain_b", "gain_c"):
         assert abs(doc["sensor_gains"][key]) <= doc["sensor_gains"]["bound"][key]
     assert not any("phase currents' sum" in w for w in doc["warnings"])
+    drive, base, preps = _family_set(20012, "current_gain_mismatch")
+    row = explain(base, preps, candidates=["current_gain_mismatch"])["candidates"][0]
+    true = truth(drive, "current_gain_mismatch", draw_effect(drive, "current_gain_mismatch", 20012), [])
+    assert "not separable from these records" in row["note"] and "phase currents' sum" in row["note"]
+    assert abs(row["params"]["gain_c"] - true["gain_c"]) <= row["params_bound"]["gain_c"]

@@ -108,6 +108,10 @@ class Effect:
     #: the figures and bounds as fitted; ``prior``: the baseline's and the nameplate's base values,
     #: {key: (value, relative sd)}), or None where the fit's figures stand
     read_through: Callable[[np.ndarray, dict, dict, dict], dict | None] = lambda values, said, ctx, prior: None
+    #: the records' own reading of its figures, whatever a fit pins: ``signals -> {"params", "params_bound",
+    #: "note"}``, or None where they carry none (the sensors' gains off the phase currents' sum); where a
+    #: fit leaves the figures unpinned, these are reported
+    direct: Callable[[list], dict | None] = lambda signals: None
     _cache: ByIdentity = field(default_factory=lambda: ByIdentity(8), compare=False, repr=False)
 
     def __post_init__(self):

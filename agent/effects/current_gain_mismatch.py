@@ -72,18 +72,34 @@ def negative_sequence(g) -> complex:
 AGREE = 0.25
 
 
-def through_sum(values, said: dict, ctx: dict, prior: dict) -> dict | None:
-    """The per-phase figures read off the phase currents' sum (:func:`sensor_sum`) where the records
-    carry three sensors: the fit reads the mismatch through the model's impedance where the
-    controller acts on the sensors (module docstring). Bounds: 3 standard errors. Where the sum shows less than
-    ``AGREE`` of the fit's mismatch (beyond its noise), what the fit takes is another 2 f_e pattern:
-    ``contradicted``, no figures. None where one phase is computed (the fit's figures stand)."""
-    read = sensor_sum(ctx["signals"])
+SUM_NOTE = ("read off the phase currents' sum (a three-wire winding's currents sum to zero, so the sum is the "
+            "sensors' mismatch)")
+
+
+def read_sum(signals) -> dict | None:
+    """The records' own reading of the figures, whatever a fit pins (:attr:`Effect.direct`):
+    ``gain_b``, ``gain_c`` off the phase currents' sum (:func:`sensor_sum`), bounds 3 standard errors;
+    None where one phase is computed."""
+    read = sensor_sum(signals)
     if read is None:
         return None
-    g, se = read
+    (g_b, g_c), (s_b, s_c) = read
+    return {"params": {"gain_b": float(g_b), "gain_c": float(g_c)},
+            "params_bound": {"gain_b": float(3.0 * s_b), "gain_c": float(3.0 * s_c)}, "note": SUM_NOTE}
+
+
+def through_sum(values, said: dict, ctx: dict, prior: dict) -> dict | None:
+    """Where the fit pins the figures: the sum's (:func:`read_sum`) instead, the fit reading the
+    mismatch through the model's impedance where the controller acts on the sensors (module
+    docstring). Where the sum shows less than ``AGREE`` of the fit's mismatch (beyond its noise),
+    what the fit takes is another 2 f_e pattern: ``contradicted``, no figures. None where one phase
+    is computed (the fit's figures stand)."""
+    read = read_sum(ctx["signals"])
+    if read is None:
+        return None
+    g, bound = list(read["params"].values()), list(read["params_bound"].values())
     eps_fit, eps_sum = negative_sequence(values), negative_sequence(g)
-    se_eps = float(np.hypot(*se)) / 3.0
+    se_eps = float(np.hypot(*bound)) / 9.0
     names = list(said["params"])
     if abs(eps_sum) + 3.0 * se_eps < AGREE * abs(eps_fit):
         return {"params": dict.fromkeys(names), "params_bound": dict.fromkeys(names),
@@ -92,11 +108,8 @@ def through_sum(values, said: dict, ctx: dict, prior: dict) -> dict | None:
                         f"+-{se_eps:.1g}) against the fit's {abs(eps_fit):.2g}: the sensors differ by less than a "
                         f"quarter of what the fit takes, which is another pattern at 2 f_e in dq, so it is not claimed"}
     turn = np.degrees(np.angle(eps_fit / eps_sum)) if abs(eps_fit) > 0 and abs(eps_sum) > 0 else 0.0
-    return {"params": dict(zip(names, map(float, g))),
-            "params_bound": dict(zip(names, map(float, 3.0 * se))),
-            "note": f"read off the phase currents' sum (a three-wire winding's currents sum to zero, so the sum is the "
-                    f"sensors' mismatch); the fit reads it through the model's impedance, rotated by {turn:+.0f} "
-                    f"degrees and {abs(eps_fit) / max(abs(eps_sum), 1e-12):.2f} times its size"}
+    return {**read, "note": f"{SUM_NOTE}; the fit reads it through the model's impedance, rotated by {turn:+.0f} "
+                            f"degrees and {abs(eps_fit) / max(abs(eps_sum), 1e-12):.2f} times its size"}
 
 
 EFFECT = Effect(
@@ -113,4 +126,5 @@ EFFECT = Effect(
     dq_orders=(0, 2), abc_orders=(1,),
     reveals="any record with current",
     read_through=through_sum,
+    direct=read_sum,
 )

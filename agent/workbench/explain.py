@@ -299,7 +299,7 @@ def reported(eid: str, r: Refit, ctx: dict, prior: dict | None = None) -> dict:
     eff = get_effect(eid)
     values = eff.report(r.values[eid], ctx)
     if not r.identifiable[eid][0]:
-        return {"params": dict.fromkeys(values), "unpinned_params": values}
+        return _direct(eff, ctx, {"params": dict.fromkeys(values), "unpinned_params": values})
     judged = judge_figures(eff, r.values[eid], r.info.get(eid), ctx)
     pinned = {k: p for k, (p, _) in judged.items()}
     loose = [k for k in values if not pinned[k]]
@@ -307,11 +307,22 @@ def reported(eid: str, r: Refit, ctx: dict, prior: dict | None = None) -> dict:
     if not loose:
         said = {"params": values, "params_bound": bounds}
         return eff.read_through(r.values[eid], said, ctx, prior or {}) or said
-    return {"params": {k: None if k in loose else v for k, v in values.items()}, "params_bound": bounds,
-            "unpinned_params": {k: values[k] for k in loose},
-            "note": f"{', '.join(loose)} not separable from these records ("
-                    + (f"reported: {', '.join(k for k in values if pinned[k])}" if len(loose) < len(values) else
-                       "its response is pinned, no figure of it is") + f"); revealed by {eff.reveals}"}
+    return _direct(eff, ctx, {
+        "params": {k: None if k in loose else v for k, v in values.items()}, "params_bound": bounds,
+        "unpinned_params": {k: values[k] for k in loose},
+        "note": f"{', '.join(loose)} not separable from these records ("
+                + (f"reported: {', '.join(k for k in values if pinned[k])}" if len(loose) < len(values) else
+                   "its response is pinned, no figure of it is") + f"); revealed by {eff.reveals}"})
+
+
+def _direct(eff, ctx: dict, said: dict) -> dict:
+    """``said`` (a fit that leaves figures unpinned), with the records' own reading of them where
+    they carry one (:attr:`agent.effects.base.Effect.direct`)."""
+    read = eff.direct(ctx["signals"])
+    if read is None:
+        return said
+    return {**said, "params": read["params"], "params_bound": read["params_bound"],
+            "note": "; ".join(filter(None, [said.get("note"), f"{', '.join(read['params'])} {read['note']}"]))}
 
 
 def params_floor(eid: str) -> str:
@@ -772,7 +783,7 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
                "effect_size": effect_size(h_ctrl, h, _total(h_ctrl), _total(h)),
                **reported(eid, r, ctx := context(r, own.get(eid, preps), baseline.profile), prior)}
         if not identifiable:
-            row["note"] = unidentified_note(eid, how)
+            row["note"] = "; ".join(filter(None, [unidentified_note(eid, how), row.get("note")]))
         elif negligible_as_pinned(eid, path_change(r.values[eid], preps, own[eid]) if eid in own else r.values[eid],
                                   row["params"], ctx):
             row["negligible"] = True
@@ -944,8 +955,9 @@ def add_effects(baseline, preps: list[Prepared], effect_ids) -> tuple[object, di
         if r.identifiable[e][0] and note:
             figures["warnings"].append(f"{e}: {note}")
         if not r.identifiable[e][0]:
-            figures["warnings"].append(f"{e}: {unidentified_note(e, r.identifiable[e][1])}; its parameters are not "
-                                       f"reported (the model keeps the fitted values as lumped terms)")
+            figures["warnings"].append(f"{e}: {unidentified_note(e, r.identifiable[e][1])}; " + (
+                f"its figures are the records' own reading ({note})" if any(v is not None for v in said[e]["params"].values())
+                else "its parameters are not reported (the model keeps the fitted values as lumped terms)"))
     for e in figures["at_bound"]:
         figures["warnings"].append(f"{e}: at its physical bound; the data want it beyond physics, so it is not this effect")
     for h in (h_before, h_ctrl, h_after):
