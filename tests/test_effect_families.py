@@ -399,3 +399,18 @@ def test_a_mismatch_no_refit_gains_from_is_still_said_from_the_sum():
     true = truth(drive, "current_gain_mismatch", draw_effect(drive, "current_gain_mismatch", 20012), [])
     assert "not separable from these records" in row["note"] and "phase currents' sum" in row["note"]
     assert abs(row["params"]["gain_c"] - true["gain_c"]) <= row["params_bound"]["gain_c"]
+
+
+def test_records_without_current_beyond_their_noise_give_no_sensor_reading():
+    """At standstill with the pulses off (zero current, or only the channels' noise) the sum has
+    nothing to read a gain from: no reading (it had raised a singular-matrix error on zeros and
+    read -1650 % on noise alone). A record with current beside them is read on its own."""
+    from agent.effects.current_gain_mismatch import sensor_sum
+
+    n = 2000
+    zeros = Signals.from_abc(np.zeros((3, n)), np.zeros((3, n)), np.zeros(n), np.zeros(n), 1e-4)
+    noise_only = [_phase_currents([0.0, 0.02, 0.01], [0.0] * 3, 0.05, k, amp=0.0) for k in range(2)]
+    assert sensor_sum([zeros]) is None and sensor_sum(noise_only) is None
+    live = _phase_currents([0.0, 0.02, 0.01], [0.0] * 3, 0.05, 7)
+    g, se = sensor_sum(noise_only + [zeros, live])
+    assert np.all(np.abs(g - [0.02, 0.01]) <= 3 * se)

@@ -6,7 +6,7 @@ negative sequence, eps i*, with 3 eps = g_b a^2 + g_c a (a = e^{j 2 pi / 3}). Wh
 controller acts on the same sensors, it holds the measured current at its reference, the winding
 carries -eps i* and the mismatch shows only as the voltage that drives it, which the model reads
 through its own impedance R_s,q - j omega_e L: on the drive family R_s,q was 2-4 times the
-winding's, and eps came out rotated by 10-40 degrees, enough to put a per-phase figure 50-150 %
+winding's, and eps came out rotated by up to 41 degrees, which put per-phase figures up to 161 %
 off. The phase currents' sum reads the sensors directly (:func:`sensor_sum`): a three-wire
 winding's currents sum to zero, so the measured sum is g_b i_b + g_c i_c relative to phase a,
 whatever the controller does.
@@ -29,11 +29,13 @@ def columns(sig):
 
 
 COMPUTED = 1e-6  #: the phase currents' sum below this share of their rms on every record: one phase is computed
+SIGNAL = 100.0  #: a record's current read only where its Gram matrix exceeds the noise's this many times (20x in amplitude)
 
 
 def sensor_sum(signals) -> tuple[np.ndarray, np.ndarray] | None:
     """(g_b, g_c) and their standard errors read off the phase currents' sum, or None where it is
-    zero sample by sample (two sensors, the third phase computed from them) or not recorded.
+    zero sample by sample (two sensors, the third phase computed from them), not recorded, or where
+    no record carries a current well above its noise (``SIGNAL``: at standstill, with the pulses off).
 
     A three-wire winding's currents sum to zero, so the measured ones m_x = (1 + g_a)(1 + g_x) i_x
     (g_x relative to phase a) obey -m_a = u_b m_b + u_c m_c with u_x = 1/(1 + g_x), exactly: least
@@ -49,11 +51,16 @@ def sensor_sum(signals) -> tuple[np.ndarray, np.ndarray] | None:
         if np.sqrt(np.mean((z - z.mean()) ** 2)) < COMPUTED * np.sqrt(np.mean(m ** 2)):
             return None
         x, y = (m[1:] - m[1:].mean(axis=1, keepdims=True)).T, -(m[0] - m[0].mean())
-        gram = x.T @ x - sig.n * zero_sequence_sigma(m) ** 2 * np.eye(2)  # less the regressors' own noise
+        gram, noise = x.T @ x, sig.n * zero_sequence_sigma(m) ** 2
+        if np.linalg.eigvalsh(gram)[0] <= max(SIGNAL * noise, 1e-9 * np.trace(gram)):
+            continue  # too little current beyond the noise to read a gain from
+        gram = gram - noise * np.eye(2)  # less the regressors' own noise
         u_k = np.linalg.solve(gram, x.T @ y)
         xtx, xty = xtx + gram, xty + x.T @ y
         rss, n, k = rss + float(np.sum((y - x @ u_k) ** 2)), n + sig.n, k + 1
         each.append(u_k)
+    if k == 0:
+        return None
     u = np.linalg.solve(xtx, xty)
     se_u = np.sqrt(np.diag(np.linalg.inv(xtx)) * rss / max(n - 3 * k, 1))
     if k > 1:  # the samples' residual is not white (quantisation, ripple): the records' own scatter counts too
@@ -99,7 +106,7 @@ def through_sum(values, said: dict, ctx: dict, prior: dict) -> dict | None:
         return None
     g, bound = list(read["params"].values()), list(read["params_bound"].values())
     eps_fit, eps_sum = negative_sequence(values), negative_sequence(g)
-    se_eps = float(np.hypot(*bound)) / 9.0
+    se_eps = float(np.hypot(*bound)) / 3.0 / 3.0  # the bounds are 3 se of g; eps = (g_b a^2 + g_c a) / 3
     names = list(said["params"])
     if abs(eps_sum) + 3.0 * se_eps < AGREE * abs(eps_fit):
         return {"params": dict.fromkeys(names), "params_bound": dict.fromkeys(names),

@@ -33,7 +33,6 @@ import scipy.stats
 from agent.decision import operating_point_notes
 from agent.effects import EFFECTS
 from agent.effects import get as get_effect
-from agent.effects.current_gain_mismatch import sensor_sum
 from agent.effects.voltage_delay import MOVES, REACH, move_toward
 from agent.errors import InputError
 from agent.evidence import effective_size
@@ -860,24 +859,25 @@ SENSOR_CLASS = 0.005  #: a phase sensor's gain off phase a's by more than this (
 
 
 def sensor_gains(preps: list[Prepared], rows: list) -> tuple[dict | None, str | None]:
-    """The current sensors' gains against phase a read off the phase currents' sum
-    (:func:`agent.effects.current_gain_mismatch.sensor_sum`): {"gain_b", "gain_c", "bound"} (None
-    where phase c is computed), and a warning where they differ beyond ``SENSOR_CLASS`` and no claim
-    says so already. The sum reads the sensors whatever the model does: a mismatch the drive's
-    controller acts on shows in the model only through its impedance, where the refits' R_s,q and L
-    can take it, so no candidate may gain from it."""
-    read = sensor_sum([p.sig for p in preps])
+    """The current sensors' gains against phase a as the records read them, off the phase currents'
+    sum (current_gain_mismatch's :attr:`agent.effects.base.Effect.direct`): {"gain_b", "gain_c",
+    "bound"} (None where phase c is computed or no record carries current), and a warning where a
+    sensor is off beyond ``SENSOR_CLASS`` and its bound and no claim says so already. The sum reads
+    the sensors whatever the model does: a mismatch the drive's controller acts on shows in the
+    model only through its impedance, where the refits' R_s,q and L can take it, so no candidate may
+    gain from it."""
+    read = get_effect("current_gain_mismatch").direct([p.sig for p in preps])
     if read is None:
         return None, None
-    g, se = read
-    out = {"gain_b": float(g[0]), "gain_c": float(g[1]), "bound": {"gain_b": float(3 * se[0]), "gain_c": float(3 * se[1])}}
+    g, bound = read["params"], read["params_bound"]
     said = any(r["effect"] == "current_gain_mismatch" and r["significant"] for r in rows)
-    if said or not np.any((np.abs(g) > SENSOR_CLASS) & (np.abs(g) > 3 * se)):
-        return out, None
-    return out, (f"the phase currents' sum shows the current sensors of phases b and c "
-                 f"{100 * g[0]:+.2f} % and {100 * g[1]:+.2f} % off phase a's gain (+-{300 * max(se):.2g} %): a three-wire winding's currents "
-                 f"sum to zero, so this is the sensors' mismatch, whatever the refits gain from current_gain_mismatch "
-                 f"(a mismatch the drive's controller acts on reaches the model only through its impedance)")
+    if said or not any(abs(g[k]) > max(SENSOR_CLASS, bound[k]) for k in g):
+        return {**g, "bound": bound}, None
+    return {**g, "bound": bound}, (
+        f"the phase currents' sum shows the current sensors of phases b and c {100 * g['gain_b']:+.2f} % and "
+        f"{100 * g['gain_c']:+.2f} % off phase a's gain (+-{100 * max(bound.values()):.2g} %): a three-wire winding's "
+        f"currents sum to zero, so this is the sensors' mismatch, whatever the refits gain from current_gain_mismatch "
+        f"(a mismatch the drive's controller acts on reaches the model only through its impedance)")
 
 
 def _document(baseline, preps: list[Prepared], before: dict, h_ctrl: dict | None, dyn: dict, rows: list,
