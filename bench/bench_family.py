@@ -140,8 +140,8 @@ def records_named(doc: dict) -> dict:
 
 def candidates(doc: dict) -> list[dict]:
     """Every candidate of a set in explain's order, in brief: share explained, p, and its gates."""
-    keys = ("effect", "explained_fraction", "p_value", "significant", "identifiable", "at_bound", "negligible",
-            "contradicted")
+    keys = ("effect", "explained_fraction", "p_value", "p_value_direct", "test", "significant", "identifiable",
+            "at_bound", "negligible", "contradicted")
     return [{k: c.get(k) for k in keys} for c in doc["candidates"]]
 
 

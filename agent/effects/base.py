@@ -109,9 +109,12 @@ class Effect:
     #: {key: (value, relative sd)}), or None where the fit's figures stand
     read_through: Callable[[np.ndarray, dict, dict, dict], dict | None] = lambda values, said, ctx, prior: None
     #: the records' own reading of its figures, whatever a fit pins: ``signals -> {"params", "params_bound",
-    #: "note"}``, or None where they carry none (the sensors' gains off the phase currents' sum); where a
-    #: fit leaves the figures unpinned, these are reported
+    #: "note", "p"}``, or None where they carry none (the sensors' gains off the phase currents' sum); where a
+    #: fit leaves the figures unpinned, these are reported; ``p``: the reading's own test that the effect
+    #: is present, over records (None where too few), which explain's claim rests on (docs/workbench.md, "Claims")
     direct: Callable[[list], dict | None] = lambda signals: None
+    #: what ``direct``'s test is, in words
+    direct_test: str = ""
     _cache: ByIdentity = field(default_factory=lambda: ByIdentity(8), compare=False, repr=False)
 
     def __post_init__(self):

@@ -16,6 +16,7 @@ Degrees of freedom: g_b, g_c (dimensionless, each within +-0.1: a sensor class).
 """
 
 import numpy as np
+import scipy.stats
 
 from agent.effects.base import Effect, Param, smooth_current
 from agent.frames import CLARKE, ab_to_dq
@@ -32,8 +33,8 @@ COMPUTED = 1e-6  #: the phase currents' sum below this share of their rms on eve
 SIGNAL = 100.0  #: a record's current read only where its Gram matrix exceeds the noise's this many times (20x in amplitude)
 
 
-def sensor_sum(signals) -> tuple[np.ndarray, np.ndarray] | None:
-    """(g_b, g_c) and their standard errors read off the phase currents' sum, or None where it is
+def sensor_sum(signals) -> tuple[np.ndarray, np.ndarray, int] | None:
+    """(g_b, g_c), their standard errors and the records read, off the phase currents' sum, or None where it is
     zero sample by sample (two sensors, the third phase computed from them), not recorded, or where
     no record carries a current well above its noise (``SIGNAL``: at standstill, with the pulses off).
 
@@ -65,7 +66,7 @@ def sensor_sum(signals) -> tuple[np.ndarray, np.ndarray] | None:
     se_u = np.sqrt(np.diag(np.linalg.inv(xtx)) * rss / max(n - 3 * k, 1))
     if k > 1:  # the samples' residual is not white (quantisation, ripple): the records' own scatter counts too
         se_u = np.maximum(se_u, np.std(each, axis=0, ddof=1) / np.sqrt(k))
-    return 1.0 / u - 1.0, se_u / u ** 2
+    return 1.0 / u - 1.0, se_u / u ** 2, k
 
 
 def negative_sequence(g) -> complex:
@@ -83,16 +84,28 @@ SUM_NOTE = ("read off the phase currents' sum (a three-wire winding's currents s
             "sensors' mismatch)")
 
 
+def sum_p(g, se, k: int) -> float | None:
+    """Two-sided p that the sensors' gains are equal, from the sum's figures ``g`` and standard errors
+    ``se`` over ``k`` records: a t-test of each gain with k - 1 degrees of freedom (the records, not
+    the samples, are independent: the standard error already counts their scatter), Bonferroni over
+    the two. None with fewer than two records."""
+    if k < 2:
+        return None
+    t = np.abs(np.asarray(g)) / np.maximum(np.asarray(se), 1e-300)
+    return float(min(1.0, 2.0 * np.min(2.0 * scipy.stats.t.sf(t, k - 1))))
+
+
 def read_sum(signals) -> dict | None:
     """The records' own reading of the figures, whatever a fit pins (:attr:`Effect.direct`):
-    ``gain_b``, ``gain_c`` off the phase currents' sum (:func:`sensor_sum`), bounds 3 standard errors;
-    None where one phase is computed."""
+    ``gain_b``, ``gain_c`` off the phase currents' sum (:func:`sensor_sum`), bounds 3 standard errors,
+    and the test that the sensors differ (:func:`sum_p`); None where one phase is computed."""
     read = sensor_sum(signals)
     if read is None:
         return None
-    (g_b, g_c), (s_b, s_c) = read
+    (g_b, g_c), (s_b, s_c), k = read
     return {"params": {"gain_b": float(g_b), "gain_c": float(g_c)},
-            "params_bound": {"gain_b": float(3.0 * s_b), "gain_c": float(3.0 * s_c)}, "note": SUM_NOTE}
+            "params_bound": {"gain_b": float(3.0 * s_b), "gain_c": float(3.0 * s_c)}, "note": SUM_NOTE,
+            "p": sum_p((g_b, g_c), (s_b, s_c), k)}
 
 
 def through_sum(values, said: dict, ctx: dict, prior: dict) -> dict | None:
@@ -134,4 +147,6 @@ EFFECT = Effect(
     reveals="any record with current",
     read_through=through_sum,
     direct=read_sum,
+    direct_test="the phase currents' sum, a t-test of each sensor's gain against phase a's over the records, "
+                "Bonferroni over the two",
 )

@@ -414,6 +414,42 @@ def too_few_note(ctrl: dict, cand: dict, alpha: float, p: float, more: int | Non
                "more records like these would not settle it"))
 
 
+#: a candidate whose effect the records read directly (:attr:`agent.effects.base.Effect.direct`'s
+#: ``p``) is tested on that reading where its refit's share of the error clears zero at this
+#: one-sided level (the lower end of its 95 % interval, ``effect_size``)
+SHARE_CLEARS = 0.025
+
+
+def test_p(row: dict, read: dict | None) -> float:
+    """The p-value of ``row``'s test, which Holm's correction weighs: the records' direct reading of
+    the effect (``read``: :attr:`agent.effects.base.Effect.direct`) where it has a test and the refit's
+    share of the error clears zero (``SHARE_CLEARS``), else the refit's test over records
+    (:func:`block_p`). A claim then says both: the effect is there (the direct reading: a sensor
+    mismatch in the phase currents' sum, exact whatever the model) and adding it lowers the error
+    (the refit). Sets ``p_value_direct`` and, where it is the test, ``test = "direct"``."""
+    if read is None or read.get("p") is None:
+        return row["p_value"]
+    row["p_value_direct"] = read["p"]
+    if row["p_value"] >= SHARE_CLEARS:
+        return row["p_value"]
+    row["test"] = "direct"
+    return read["p"]
+
+
+def direct_note(row: dict) -> str:
+    """How a claim that rests on the records' direct reading (:func:`test_p`) was tested."""
+    return (f"tested on the records' direct reading (p = {row['p_value_direct']:.2g}: "
+            f"{get_effect(row['effect']).direct_test}); its refit's share of the error clears zero "
+            f"(p = {row['p_value']:.2g}, one-sided)")
+
+
+def direct_short_note(row: dict, level: float) -> str:
+    """Why a candidate tested on the records' direct reading (:func:`test_p`) is not significant."""
+    return (f"not significant: the records' direct reading does not show it beyond their scatter (p = "
+            f"{row['p_value_direct']:.2g}, Holm needs < {level:.2g}: {get_effect(row['effect']).direct_test}), "
+            f"so what its refit takes ({row['explained_fraction']:.0%} of the error) is not shown to be this effect")
+
+
 def holm(p_values: list[float], alpha: float) -> list[bool]:
     """Holm's step-down rejections at family-wise level ``alpha``."""
     order = np.argsort(p_values)
@@ -775,12 +811,12 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
         held.append(h)
         identifiable, how = r.identifiable[eid]
         bound = r.at_bound.get(eid, False)
-        p_values.append(block_p(h_ctrl, h))
         row = {"effect": eid, "nrmse_after": _total(h), "explained_fraction": _share(h_ctrl, h),
-               "significant": False, "p_value": p_values[-1], "identifiable": identifiable, "at_bound": bound,
+               "significant": False, "p_value": block_p(h_ctrl, h), "identifiable": identifiable, "at_bound": bound,
                "nrmse_after_dq": _dq(h), "identifiability": how,
                "effect_size": effect_size(h_ctrl, h, _total(h_ctrl), _total(h)),
                **reported(eid, r, ctx := context(r, own.get(eid, preps), baseline.profile), prior)}
+        p_values.append(test_p(row, get_effect(eid).direct(ctx["signals"])))
         if not identifiable:
             row["note"] = "; ".join(filter(None, [unidentified_note(eid, how), row.get("note")]))
         elif negligible_as_pinned(eid, path_change(r.values[eid], preps, own[eid]) if eid in own else r.values[eid],
@@ -828,10 +864,14 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
             row["note"] = "; ".join(filter(None, [row.get("note"), (
                 f"significant against the control alone, not on top of {leader['effect']}: it takes up part of "
                 f"that effect's error")]))
-    for row, h in zip(rows, held):
-        if row["significant"] or row["p_value"] >= 1.0:
+    for row, h, p in zip(rows, held, p_values):
+        if row["significant"] and row.get("test") == "direct" and "given" not in row:
+            row["note"] = "; ".join(filter(None, [row.get("note"), direct_note(row)]))
+        if row["significant"] or p >= 1.0:
             continue
-        if _claimable(row) and row["p_value"] >= level:  # below it, Holm passed it and its note says why it is not claimed
+        if _claimable(row) and row.get("test") == "direct" and p >= level:
+            why = direct_short_note(row, level)
+        elif _claimable(row) and p >= level:  # below it, Holm passed it and its note says why it is not claimed
             row["records_needed"] = records_needed(h_ctrl, h, level)
             why = too_few_note(h_ctrl, h, level, row["p_value"], row["records_needed"])
         elif _too_small(row):
