@@ -386,34 +386,36 @@ def test_a_family_drive_whose_controller_holds_the_mismatch_gets_its_gains_from_
 
 
 def test_a_mismatch_no_refit_gains_from_is_still_said_from_the_sum():
-    """Family drive 20004 (MTPA, its controller acts on its sensors): with phases b and c 4.8 % and
-    2.2 % below phase a, the gain mismatch's refit gains nothing (the model's impedance takes the
-    voltage that holds the mismatch), so no candidate names it. The document's ``sensor_gains`` read
-    both within 0.05 percentage points and a warning says so; the same drive's null set reads zero
-    within its bound and warns of nothing. The unidentified candidate's own figures are the sum's.
-    A fit that leaves the figures unpinned (20012: "its response is pinned, no figure of it is")
-    reports the sum's as well."""
+    """Family drive 20036 (no encoder, a load ripple, its controller acts on its sensors): with
+    phase b 3.0 % above phase a, the gain mismatch's refit gains nothing (the model's impedance takes
+    the voltage that holds the mismatch), so no candidate names it. The document's ``sensor_gains``
+    read both within 0.05 percentage points and a warning says so; the same drive's null set reads
+    zero within its bound and warns of nothing. The unidentified candidate's own figures are the
+    sum's. A fit that leaves the figures unpinned (20007: "its response is pinned, no figure of it
+    is") reports the sum's as well."""
     from bench.family import draw_effect, truth
     from tests.test_workbench_claims import _family_set
 
-    drive, base, preps = _family_set(20004, "current_gain_mismatch")
+    drive, base, preps = _family_set(20036, "current_gain_mismatch")
     doc = explain(base, preps, candidates=["current_gain_mismatch"])
     assert not any(c["significant"] for c in doc["candidates"])
-    true = truth(drive, "current_gain_mismatch", draw_effect(drive, "current_gain_mismatch", 20004), [])
+    true = truth(drive, "current_gain_mismatch", draw_effect(drive, "current_gain_mismatch", 20036), [])
     for key in ("gain_b", "gain_c"):
         assert doc["sensor_gains"][key] == pytest.approx(true[key], abs=5e-4)
-    assert any("phase currents' sum shows the current sensors" in w and "-4.8" in w for w in doc["warnings"])
+    said = f"{100 * doc['sensor_gains']['gain_b']:+.2f} %"
+    assert abs(true["gain_b"]) > 0.02 and any("phase currents' sum shows the current sensors" in w and said in w
+                                              for w in doc["warnings"])
     row = doc["candidates"][0]  # unidentified, yet its figures are the sum's, and its note says both
     assert not row["identifiable"] and "not identifiable" in row["note"] and "phase currents' sum" in row["note"]
     assert row["params"] == pytest.approx({k: doc["sensor_gains"][k] for k in ("gain_b", "gain_c")})
-    _, base, preps = _family_set(20004, None)
+    _, base, preps = _family_set(20036, None)
     doc = explain(base, preps, candidates=["current_gain_mismatch"])
     for key in ("gain_b", "gain_c"):
         assert abs(doc["sensor_gains"][key]) <= doc["sensor_gains"]["bound"][key]
     assert not any("phase currents' sum" in w for w in doc["warnings"])
-    drive, base, preps = _family_set(20012, "current_gain_mismatch")
+    drive, base, preps = _family_set(20007, "current_gain_mismatch")
     row = explain(base, preps, candidates=["current_gain_mismatch"])["candidates"][0]
-    true = truth(drive, "current_gain_mismatch", draw_effect(drive, "current_gain_mismatch", 20012), [])
+    true = truth(drive, "current_gain_mismatch", draw_effect(drive, "current_gain_mismatch", 20007), [])
     assert "not separable from these records" in row["note"] and "phase currents' sum" in row["note"]
     assert abs(row["params"]["gain_c"] - true["gain_c"]) <= row["params_bound"]["gain_c"]
 
