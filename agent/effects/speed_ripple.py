@@ -1,7 +1,8 @@
 """Rotor speed ripple at the shaft frequency that the model's speed signal does not carry.
 
 Family: the rotor's speed ripples at f_r = fe/p by delta omega_e (rad/s); the model, turning its
-flux at the narrow-band speed, misses -j delta omega_e psi_s, and a frame that follows the current
+flux at a speed without that line (the PLL's narrow-band one, or the workbench frame's speed less its
+shaft line: :func:`agent.workbench.fitting.frame_speed`), misses -j delta omega_e psi_s, and a frame that follows the current
 vector also turns against the rotor by a share s of its angle ripple.
 
 Degrees of freedom: k_w (0..3, the model's gain on the measured speed error's column; 1 where its
@@ -31,8 +32,9 @@ def speed_error_line(sig) -> np.ndarray:
     d theta_e/dt - omega_e, by least squares over the signals.
 
     Under an angle that follows the rotor (the workbench's frame,
-    :func:`agent.workbench.fitting.follow_current`, or an encoder) and a narrow-band speed (the
-    PLL's), the rotor's speed ripple is in this difference; the phase is read off the signals
+    :func:`agent.workbench.fitting.follow_current`, or an encoder) and a speed without the shaft
+    line (the PLL's, or the frame's: :func:`agent.workbench.fitting.frame_speed`), the rotor's speed
+    ripple is in this difference; the phase is read off the signals
     themselves, since theta_e / p fixes the shaft angle only up to a multiple of 2 pi / p. In the
     PLL's own frame angle and speed agree up to the loop's proportional path (about a tenth of the
     ripple at 25 Hz with the 3 Hz loop), so the line nearly vanishes there."""
@@ -83,6 +85,6 @@ EFFECT = Effect(
     signature="f_r = fe/p in dq (fe +- f_r in the phase residual, the driving-gear line k = 1), in "
               "phase with the ripple of the angle's rotation",
     reveals="records without an encoder speed, whose angle follows the rotor (the workbench's) while the "
-            "speed is the PLL's narrow-band one; in the agent's own PLL frame angle and speed nearly "
+            "speed leaves the shaft line out where the records show one; in the agent's own PLL frame angle and speed nearly "
             "agree, the columns nearly vanish and the ripple stays in its residual",
 )
