@@ -326,7 +326,7 @@ def test_the_phase_currents_sum_reads_each_sensors_gain_against_phase_a(monkeypa
         assert np.all(se < 5e-4)  # 0.05 % at a noise of 3 % of the amplitude
     assert sensor_sum([_phase_currents(gains, offsets, 0.3, 1, computed=True)]) is None
     monkeypatch.setattr(cgm, "zero_sequence_sigma", lambda m: 0.0)  # the regressors' noise left in
-    g, se, _ = sensor_sum(records)
+    g, se, _ = sensor_sum([_phase_currents(gains, offsets, 0.3, 40 + k) for k in range(4)])  # new records: not cached
     assert np.all(np.abs(g - truth) > 3.0 * se)
 
 

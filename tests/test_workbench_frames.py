@@ -214,17 +214,19 @@ def test_a_dead_time_whose_fundamental_the_records_flux_takes_is_read_by_its_6fe
     assert top["params"]["U_dt_V"] == pytest.approx(true, rel=0.1)
 
 
+@pytest.mark.parametrize("direction", [1.0, -1.0])
 @pytest.mark.parametrize("ripple", [0.0, 0.6])
-def test_the_frame_speed_loses_a_shaft_line_only_where_there_is_one(ripple):
+def test_the_frame_speed_loses_a_shaft_line_only_where_there_is_one(ripple, direction):
     """A followed frame's speed through a speed ramp (9 %, 40 ms), with white noise on the rate and
-    a shaft-frequency ripple of ``ripple`` rad/s: ``frame_speed`` takes out that line within 5 % of
-    its amplitude and keeps the ramp; without a ripple it takes out nothing (a ramp's corners and the
+    a shaft-frequency ripple of ``ripple`` rad/s: ``frame_speed`` takes out that line within 15 % of
+    its amplitude (the ramp leaks up to 0.08 rad/s into it over the 1 s record, adding or taking
+    away with the ripple's phase) and keeps the ramp; without a ripple it takes out nothing (a ramp's corners and the
     noise project onto any frequency, and taken out as a line they left an error that speed_ripple
-    claimed on two family null sets)."""
+    claimed on two family null sets). The same in reverse rotation (``direction`` -1)."""
     from agent.workbench.fitting import frame_speed
 
     rng = np.random.default_rng(3)
-    ts, n, p, w0 = 1 / 16000, 16000, 3, 2 * np.pi * 60.0
+    ts, n, p, w0 = 1 / 16000, 16000, 3, direction * 2 * np.pi * 60.0
     t = np.arange(n) * ts
     ramp = 0.09 * w0 * np.clip((t - 0.45) / 0.04, 0.0, 1.0)
     theta = np.cumsum(w0 + ramp) * ts
@@ -237,5 +239,5 @@ def test_the_frame_speed_loses_a_shaft_line_only_where_there_is_one(ripple):
         assert np.all(taken == 0.0)
         return
     amp = np.sqrt(2.0) * np.std(taken)
-    assert amp == pytest.approx(ripple, rel=0.05)
+    assert amp == pytest.approx(ripple, rel=0.15)
     assert np.corrcoef(taken, line)[0, 1] > 0.95

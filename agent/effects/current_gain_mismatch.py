@@ -18,7 +18,7 @@ Degrees of freedom: g_b, g_c (dimensionless, each within +-0.1: a sensor class).
 import numpy as np
 import scipy.stats
 
-from agent.effects.base import Effect, Param, smooth_current
+from agent.effects.base import ByIdentity, Effect, Param, smooth_current
 from agent.frames import CLARKE, ab_to_dq
 from agent.physical import zero_sequence_sigma
 
@@ -33,6 +33,29 @@ COMPUTED = 1e-6  #: the phase currents' sum below this share of their rms on eve
 SIGNAL = 100.0  #: a record's current read only where its Gram matrix exceeds the noise's this many times (20x in amplitude)
 
 
+def _record_sum(sig):
+    """One record's share of :func:`sensor_sum`: (Gram matrix less the regressors' noise, X^T y,
+    residual sum of squares, its own u), None where its current is not well above the noise
+    (``SIGNAL``), or a reason (str) where the record cannot be read at all."""
+    m = sig.i_abc
+    if m is None:
+        return "no phase currents"
+    z = m.sum(axis=0)
+    if np.sqrt(np.mean((z - z.mean()) ** 2)) < COMPUTED * np.sqrt(np.mean(m ** 2)):
+        return "one phase computed"
+    x, y = (m[1:] - m[1:].mean(axis=1, keepdims=True)).T, -(m[0] - m[0].mean())
+    gram, noise = x.T @ x, sig.n * zero_sequence_sigma(m) ** 2
+    if np.linalg.eigvalsh(gram)[0] <= max(SIGNAL * noise, 1e-9 * np.trace(gram)):
+        return None
+    gram = gram - noise * np.eye(2)  # less the regressors' own noise
+    u_k = np.linalg.solve(gram, x.T @ y)
+    return gram, x.T @ y, float(np.sum((y - x @ u_k) ** 2)), u_k
+
+
+#: per record, :func:`_record_sum` (explain reads the sum for the figures, the test and the warning)
+_RECORDS = ByIdentity(16)
+
+
 def sensor_sum(signals) -> tuple[np.ndarray, np.ndarray, int] | None:
     """(g_b, g_c), their standard errors and the records read, off the phase currents' sum, or None where it is
     zero sample by sample (two sensors, the third phase computed from them), not recorded, or where
@@ -45,20 +68,13 @@ def sensor_sum(signals) -> tuple[np.ndarray, np.ndarray, int] | None:
     g_x = 1/u_x - 1. Standard errors: the residual's, or the records' scatter where larger."""
     xtx, xty, rss, n, k, each = np.zeros((2, 2)), np.zeros(2), 0.0, 0, 0, []
     for sig in signals:
-        m = sig.i_abc
-        if m is None:
+        one = _RECORDS.get(sig, _record_sum)
+        if isinstance(one, str):  # not recorded, or one phase computed
             return None
-        z = m.sum(axis=0)
-        if np.sqrt(np.mean((z - z.mean()) ** 2)) < COMPUTED * np.sqrt(np.mean(m ** 2)):
-            return None
-        x, y = (m[1:] - m[1:].mean(axis=1, keepdims=True)).T, -(m[0] - m[0].mean())
-        gram, noise = x.T @ x, sig.n * zero_sequence_sigma(m) ** 2
-        if np.linalg.eigvalsh(gram)[0] <= max(SIGNAL * noise, 1e-9 * np.trace(gram)):
+        if one is None:
             continue  # too little current beyond the noise to read a gain from
-        gram = gram - noise * np.eye(2)  # less the regressors' own noise
-        u_k = np.linalg.solve(gram, x.T @ y)
-        xtx, xty = xtx + gram, xty + x.T @ y
-        rss, n, k = rss + float(np.sum((y - x @ u_k) ** 2)), n + sig.n, k + 1
+        gram, x_y, r, u_k = one
+        xtx, xty, rss, n, k = xtx + gram, xty + x_y, rss + r, n + sig.n, k + 1
         each.append(u_k)
     if k == 0:
         return None

@@ -437,6 +437,11 @@ def test_p(row: dict, read: dict | None) -> float:
     return read["p"]
 
 
+def tested_p(row: dict) -> float:
+    """The p-value Holm's correction weighed for ``row`` (:func:`test_p`)."""
+    return row["p_value_direct"] if row.get("test") == "direct" else row["p_value"]
+
+
 def direct_note(row: dict) -> str:
     """How a claim that rests on the records' direct reading (:func:`test_p`) was tested."""
     return (f"tested on the records' direct reading (p = {row['p_value_direct']:.2g}: "
@@ -748,12 +753,12 @@ def _forward(rows: list[dict], fits: dict, preps: list[Prepared], base: dict, pr
                 continue
             ok = (r.identifiable[row["effect"]][0] and not r.at_bound.get(row["effect"], False)
                   and not get_effect(row["effect"]).negligible(r.values[row["effect"]])
-                  and (share or 0.0) >= MIN_EXPLAINED and p < ALPHA / max(len(open_rows), 1))
+                  and (share or 0.0) >= MIN_EXPLAINED)
             tried.append((p, row, ok, share))
         if not tried:
             return
         p, row, ok, share = min(tried, key=lambda t: t[0])
-        if not ok:
+        if not (ok and p < ALPHA / len(open_rows)):  # Bonferroni over the rows still open
             return
         row.update(significant=True, given=list(accepted), explained_fraction_given=share, p_value_given=p)
         accepted.append(row["effect"])
@@ -874,7 +879,7 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
             f"{100 * rival['nrmse_after']:.3g} % against {100 * first['nrmse_after']:.3g} %, "
             f"{100 * (rival['explained_fraction'] or 0.0):.3g} % of the control's error against "
             f"{100 * (first['explained_fraction'] or 0.0):.3g} %) but " + (
-                f"its own test falls short of Holm's level (p = {rival['p_value']:.2g}), so these records cannot tell "
+                f"its own test falls short of Holm's level (p = {tested_p(rival):.2g}), so these records cannot tell "
                 f"which of the two they carry" if short else f"these records cannot pin it ({rival.get('note', '')})"))])))
         first = None
     twin = _twin(first, rows, fits, preps, own, dict(zip(fits, held)))
@@ -891,14 +896,14 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
             row["note"] = "; ".join(filter(None, [row.get("note"), (
                 f"significant against the control alone, not on top of {leader['effect']}: it takes up part of "
                 f"that effect's error")]))
-    for row, h, p in zip(rows, held, p_values):
+    for row, h in zip(rows, held):
         if row["significant"] and row.get("test") == "direct" and "given" not in row:
             row["note"] = "; ".join(filter(None, [row.get("note"), direct_note(row)]))
         if row["significant"] or row["p_value"] >= 1.0:
             continue
-        if _claimable(row) and row.get("test") == "direct" and p >= level:
+        if _claimable(row) and row.get("test") == "direct" and tested_p(row) >= level:
             why = direct_short_note(row, level)
-        elif _claimable(row) and p >= level:  # below it, Holm passed it and its note says why it is not claimed
+        elif _claimable(row) and row["p_value"] >= level:  # below it, Holm passed it and its note says why it is not claimed
             row["records_needed"] = records_needed(h_ctrl, h, level)
             why = too_few_note(h_ctrl, h, level, row["p_value"], row["records_needed"])
         elif _too_small(row):

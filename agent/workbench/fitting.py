@@ -67,7 +67,7 @@ FIT_FRACTION = 0.5  #: share of each record used for fitting; the rest is held o
 MOVE_CUTOFF_HZ, MOVE_MIN = 5.0, 0.05  #: an operating point moves when its 5 Hz low-pass spans 5 % (:func:`fit_start`)
 BLOCK_S = 0.1  #: s, block length of the held-out significance test
 FRAME_CUTOFF = 0.5  #: the workbench's angle follows the current vector below this fraction of fe
-SPEED_CUTOFF = 0.5  #: its speed loses the shaft line (fe/p) of that angle's rate above this fraction of the shaft frequency
+SPEED_CUTOFF = 0.5  #: its speed's shaft line (fe/p) is fitted to its rate high-passed at this fraction of the shaft frequency
 L_MAX_H = 10.0  #: H, the inductance taken when the one-step regression sees no response to the voltage
 TAU_MIN_S, TAU_MAX_S = 0.5e-3, 0.1  #: s, range of the electrical time constants L_x / R_s,x of a refit
 WITHIN_MIN = 0.01  #: share of an effect column's energy that must vary within records for one_step to fit it
@@ -220,7 +220,7 @@ def shaft_line(rate: np.ndarray, theta: np.ndarray, sig: Signals) -> np.ndarray:
     high = rate - shaft_lowpass(rate, sig)
     shaft = theta / max(sig.pole_pairs or 1, 1)
     t = np.arange(rate.size) * sig.ts
-    f_r = float(np.mean(rate)) / (2 * np.pi * max(sig.pole_pairs or 1, 1))
+    f_r = float(np.mean(rate)) / (2 * np.pi * max(sig.pole_pairs or 1, 1))  # signed: negative in reverse
 
     def fit(phase):
         x = np.column_stack((np.cos(phase), np.sin(phase)))
@@ -229,8 +229,8 @@ def shaft_line(rate: np.ndarray, theta: np.ndarray, sig: Signals) -> np.ndarray:
 
     line, power = fit(shaft)
     span = t[-1] + sig.ts
-    near = [fit(shaft + 2 * np.pi * k / span * t)[1] for m in LINE_NEIGHBOURS for k in (m, -m)
-            if f_r + k / span > 0.5 * f_r]
+    near = [fit(shaft + 2 * np.pi * np.sign(f_r) * k / span * t)[1] for m in LINE_NEIGHBOURS for k in (m, -m)
+            if abs(f_r) + k / span > 0.5 * abs(f_r)]
     if len(near) < 4 or power < LINE_OVER * float(np.median(near)):
         return np.zeros_like(rate)
     return line
