@@ -70,6 +70,17 @@ class Sampling:
     #: the inverter: "pwm" (it switches the DC link: what a measured terminal voltage averages) or
     #: "continuous" (a linear amplifier, or a simulation's averaged inverter); not stated: PWM
     inverter: str = "pwm"
+    #: the drive's voltage update rate, Hz (its current loop's: PWM updates the duty cycles once or twice
+    #: per carrier). Only needed where the records' current is not the controller's own samples
+    #: (current_source = "independent") and has no encoder angle: averaged over the drive's hold (a
+    #: clock not the drive's, or a window over the interval), that current leads or trails the
+    #: controller's samples (agent.workbench.fitting.hold_offset); equal to rate_hz, a DAQ that point-
+    #: samples at the drive's own instants. Not stated: the record's rate where the current ADC's window
+    #: is stated (a DAQ synchronous with the drive)
+    control_rate_hz: float | None = None
+    #: how the drive holds its voltage over each update: "abc" (PWM, which fixes the phases' duty cycles)
+    #: or "dq" (a continuous inverter holding the rotor-frame command); not stated: "abc"
+    voltage_hold: str = "abc"
 
 
 @dataclass(frozen=True)
@@ -203,6 +214,11 @@ def parse_profile(data: dict, source: str = "<profile>") -> DriveProfile:
         raise InputError("key 'sampling.current_source' must be \"controller\" or \"independent\"", source=source)
     if parts["sampling"].inverter not in ("pwm", "continuous"):
         raise InputError("key 'sampling.inverter' must be \"pwm\" or \"continuous\"", source=source)
+    if parts["sampling"].voltage_hold not in ("abc", "dq"):
+        raise InputError("key 'sampling.voltage_hold' must be \"abc\" or \"dq\"", source=source)
+    if parts["sampling"].voltage_hold == "dq" and parts["sampling"].inverter == "pwm":
+        raise InputError("key 'sampling.voltage_hold' = \"dq\" needs sampling.inverter = \"continuous\": PWM fixes the "
+                         "phases' duty cycles over each update, which holds the voltage in abc", source=source)
     if parts["sampling"].current_reference not in (None, "id0", "mtpa"):
         raise InputError("key 'sampling.current_reference' must be \"id0\" or \"mtpa\"", source=source)
     for key, (lo, hi) in VOLTAGE_PATH_RANGES.items():

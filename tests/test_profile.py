@@ -54,6 +54,9 @@ driven_teeth = 40
     (lambda t: t.replace('kind = "gear"', 'kind = "chain"'), "missing key 'transmission.driving_pitch_diameter_mm'"),
     (lambda t: t.replace('voltage_source = "measured"', 'voltage_source = "x"'), "sampling.voltage_source"),
     (lambda t: t.replace("[motor]", "[motor"), "not valid TOML"),
+    (lambda t: t.replace("[sampling]", '[sampling]\nvoltage_hold = "alpha-beta"'), "sampling.voltage_hold"),
+    (lambda t: t.replace("[sampling]", '[sampling]\nvoltage_hold = "dq"'), 'needs sampling.inverter = "continuous"'),
+    (lambda t: t.replace("control_rate_hz = 25000.0", "control_rate_hz = 0.0"), "'sampling.control_rate_hz' must be positive"),
 ])
 def test_bad_profiles_name_the_key(tmp_path, edit, needle):
     p = write(tmp_path, edit(GEAR))

@@ -39,7 +39,8 @@ from agent.errors import InputError
 from agent.evidence import effective_size
 from agent.workbench.excitation import dynamics, no_dynamics_note, unfollowed_note
 from agent.workbench.fitting import (CONFLICT_SD, L_MAX_H, NONLINEAR, UNSEEN, Prepared, Refit, fit_cost, heldout,
-                                     judge_figures, moved_path, onto_rotor, refit)
+                                     judge_figures, hold_period, moved_path, one_step, onto_controller, onto_rotor,
+                                     refit, with_prior)
 
 ALPHA = 0.01  #: family-wise significance level of the test over records
 MIN_RECORDS = 3  #: records needed for the test
@@ -117,6 +118,38 @@ def physical_prior(baseline) -> dict:
     return out
 
 
+def rotor_frames(preps: list[Prepared], profile, prior: dict) -> list[Prepared]:
+    """Records in the current vector's frame (no encoder) onto the rotor's, by the baseline's
+    inductances: under MTPA by their active flux (:func:`agent.workbench.fitting.onto_rotor`; only
+    where the profile says the current leads the rotor's q axis: a hidden effect that moves L_q with
+    the load, saturation, reads as a current angle, and the rig's i_d = 0 records turned by up to 10
+    degrees), else onto the frame in which the controller's own samples lie on q, where the records'
+    current averages over the drive's hold (:func:`agent.workbench.fitting.onto_controller`)."""
+    if all(p.encoder for p in preps) or "Lq" not in prior:
+        return preps
+    if profile.sampling.current_reference == "mtpa":
+        return onto_rotor(preps, prior["Lq"][0], prior.get("Rs", (0.0,))[0])
+    t_hold = hold_period(profile.sampling)
+    if t_hold is None:
+        return preps
+    return onto_controller(preps, t_hold, hold_ld(preps, prior), prior["Lq"][0])
+
+
+HOLD_LD_PRECISION = 0.3  #: the records' one-step L_d turns a frame onto the controller's where known to this share
+
+
+def hold_ld(preps: list[Prepared], prior: dict) -> float:
+    """H: the L_d that :func:`agent.workbench.fitting.hold_offset` reads the d offset through. Under
+    i_d = 0 the baseline rarely pins it (its steady state has no d current), so the records' one-step
+    reading with the baseline's where that is known to ``HOLD_LD_PRECISION`` (the d axis's response to
+    the current loop's voltage), else the baseline's, else its L_q: L_d <= L_q, the smallest offset
+    (constant references leave the d axis no dynamics to read: family drive 20649 read 10 H)."""
+    step = one_step(preps)
+    if np.isfinite(step.ld) and 0 < step.ld < L_MAX_H and step.rel_se.get("Ld", np.inf) <= HOLD_LD_PRECISION:
+        return with_prior(step, prior)[0]
+    return prior.get("Ld", prior["Lq"])[0]
+
+
 def frame_warnings(profile, preps: list[Prepared], prior: dict) -> list[str]:
     """What explain says of records without an encoder angle: their frame is the current vector's,
     the rotor's only under i_d = 0 (:func:`agent.workbench.fitting.onto_rotor`)."""
@@ -130,7 +163,27 @@ def frame_warnings(profile, preps: list[Prepared], prior: dict) -> list[str]:
     if ref == "mtpa" and "Lq" not in prior:
         return ["records without an encoder angle stay in the current vector's frame, which under MTPA leads the "
                 "rotor's: turning them needs L_q, which identify did not pin (give nameplate.lq_h)"]
-    return []
+    s = profile.sampling
+    if ref == "mtpa" or s.current_source != "independent" or s.voltage_hold != "abc":
+        return []
+    if hold_period(s) is not None and "Lq" not in prior:
+        return ["records without an encoder angle stay in the current vector's frame, which leads or trails the "
+                "rotor's by the drive's hold (the DAQ's current averages over it, the controller holds its own samples "
+                "on q): turning them needs L_q, which identify did not pin (give nameplate.lq_h)"]
+    if hold_period(s) is not None or s.control_rate_hz:
+        return []
+    size = ""
+    if "Lq" in prior:  # at an update rate equal to the record's, through L_q (L_d <= L_q: at least this)
+        free = [p.sig for p in preps if not p.encoder]
+        turn = [float(np.mean(np.abs(p.meta["hold_turn_rad"]))) for p in onto_controller(
+            [p for p in preps if not p.encoder], free[0].ts, prior["Lq"][0], prior["Lq"][0])]
+        size = (f" (about {max(turn):.2g} rad, {max(turn) / (free[0].ts * float(np.mean(np.abs(free[0].omega_e)))):.2g} "
+                f"samples of omega_e T_s, were the drive to update at the record's rate; it grows with the square of its "
+                f"update period)")
+    return ["records without an encoder angle from an independent DAQ are judged in the frame of its current vector, "
+            "which averages over the drive's voltage hold, while the controller holds its own samples on q: that frame "
+            f"leads or trails the rotor's{size}, and the voltage path's rotation may take it; state the drive's update "
+            "rate (sampling.control_rate_hz) or give records with an encoder angle"]
 
 
 def _as_refit(model, preps: list[Prepared]) -> Refit:
@@ -794,11 +847,7 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
     dyn = dynamics(preps, prior)
     if dyn["quiet"]:
         return _unranked(baseline, preps, before, None, dyn, no_dynamics_note(dyn), t0)
-    if baseline.profile.sampling.current_reference == "mtpa" and "Lq" in prior:
-        # the current vector's frames (no encoder) onto the rotor's, by an identified L_q; only where
-        # the profile says the current leads the rotor's q axis: a hidden effect that moves L_q with the
-        # load (saturation) reads as a current angle (the rig's i_d = 0 records turned by up to 10 degrees)
-        preps = onto_rotor(preps, prior["Lq"][0], prior.get("Rs", (0.0,))[0])
+    preps = rotor_frames(preps, baseline.profile, prior)
     ctrl = control(model, preps, base, prior=prior)
     h_ctrl = heldout(ctrl.model, preps)
     if not h_ctrl["stable"]:
@@ -1012,6 +1061,7 @@ def add_effects(baseline, preps: list[Prepared], effect_ids) -> tuple[object, di
     if dup:
         raise InputError(f"the model already has effect(s) {', '.join(dup)}")
     base, prior = drive_base(baseline), physical_prior(baseline)
+    preps = rotor_frames(preps, baseline.profile, prior)
     ctrl = control(model, preps, base, prior=prior)
     r = nested(ctrl, preps, new, base, prior)
     ctx = context(r, preps, baseline.profile)

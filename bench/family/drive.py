@@ -322,7 +322,8 @@ def profile(drive: Drive, nameplate: bool = False, timing: bool = False) -> Driv
     (a random error drawn from the drive's seed); with ``timing``, the voltage path the drive's
     documentation gives (computation delay, hold, logging, the DAQ filter's lag:
     :func:`bench.family.effects.voltage_path` of the healthy drive), the current ADC's window, whose
-    current samples the records carry and the current reference (i_d = 0 or MTPA)."""
+    current samples the records carry, the current reference (i_d = 0 or MTPA), the drive's update
+    rate and its hold (abc or dq)."""
     doc = {
         "name": f"family_{drive.seed}",
         "motor": {"pole_pairs": drive.pole_pairs, "rated_power_w": drive.rated_power_w,
@@ -348,4 +349,6 @@ def profile(drive: Drive, nameplate: bool = False, timing: bool = False) -> Driv
         # come from the DAQ's own channels (bench.family.simulate)
         doc["sampling"]["current_source"] = "controller" if drive.current_sampling == "centre" else "independent"
         doc["sampling"]["current_reference"] = drive.current_reference
+        # the drive's update rate and its hold (its documentation's PWM frequency and inverter)
+        doc["sampling"].update(control_rate_hz=drive.control_rate_hz, voltage_hold=drive.voltage_hold)
     return parse_profile(doc, source=f"family_{drive.seed}")
