@@ -289,6 +289,8 @@ def test_a_daq_current_frame_is_turned_onto_the_controllers():
         after = _offset_deg(turned[0].sig, rec.theta_e)
         assert before > 0.5, (load, before)
         assert abs(after) < 0.2 * before, (load, before, after)
+    # an offset as large as the current (a drive updating 30x slower) carries no frame: left as it is
+    assert onto_controller(prep, 30.0 / prof.sampling.control_rate_hz, drive.ld_h, drive.lq_h)[0] is prep[0]
 
 
 def test_a_daq_behind_the_drives_hold_claims_no_voltage_path_once_the_update_rate_is_known():
@@ -298,3 +300,16 @@ def test_a_daq_behind_the_drives_hold_claims_no_voltage_path_once_the_update_rat
     _, _, doc = _explained(HOLD_DAQ, None)
     assert doc["nrmse_control"] < 1.5 * doc["noise_floor"], (doc["nrmse_control"], doc["noise_floor"])
     assert not [c["effect"] for c in doc["candidates"] if c["significant"]]
+
+
+def test_the_rigs_triggered_daq_and_motulators_own_samples_are_not_turned():
+    """The rig's DAQ point-samples at its drive's updates (control_rate_hz = rate_hz), motulator's
+    records are its controller's samples: neither has a hold offset to turn by."""
+    from pathlib import Path
+
+    from agent.profile import load_profile
+
+    root = Path(__file__).resolve().parent.parent
+    for path in (root / "config/profiles/rig_gear.toml", root / "config/profiles/rig_chain.toml",
+                 root / "bench/thirdparty/motulator_gear.toml"):
+        assert hold_period(load_profile(path).sampling) is None, path

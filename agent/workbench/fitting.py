@@ -1227,6 +1227,9 @@ def hold_offset(s: Signals, t_hold: float, ld: float, lq: float) -> np.ndarray:
     return -k * v.imag / ld + 1j * k * v.real / lq
 
 
+HOLD_MAX = 0.5  #: a record whose hold offset reaches this share of its current's magnitude is left unturned
+
+
 def onto_controller(preps: list[Prepared], t_hold: float, ld: float, lq: float) -> list[Prepared]:
     """``preps`` in the current vector's frame (no encoder, not turned onto the rotor's) turned onto
     the frame in which the *controller's* samples lie on its reference. The drive holds its own
@@ -1236,7 +1239,8 @@ def onto_controller(preps: list[Prepared], t_hold: float, ld: float, lq: float) 
     path's rotation takes: family null drive 20703 (6 pole pairs, 8.3 kHz records, a 5.1 kHz drive)
     claimed a 0.33-sample advance of the voltage at 86 % of the control's error; turned, the control
     fell from 4.5 to 1.3 times its noise floor and the rotation explains 3 %. ``t_hold`` s
-    (:func:`hold_period`), ``ld``, ``lq`` H (the baseline's)."""
+    (:func:`hold_period`), ``ld``, ``lq`` H (the baseline's). A record whose current is too small to
+    carry a frame (its offset ``HOLD_MAX`` of it or more) is left as it is."""
     out = []
     for p in preps:
         if p.encoder or p.turned:
@@ -1244,7 +1248,11 @@ def onto_controller(preps: list[Prepared], t_hold: float, ld: float, lq: float) 
             continue
         s = p.sig
         i = frame_lowpass(s.i_dq[0] + 1j * s.i_dq[1], s)
-        delta = np.angle((i - hold_offset(s, t_hold, ld, lq)) / np.where(np.abs(i) > 0, i, 1.0))
+        off = hold_offset(s, t_hold, ld, lq)
+        if np.max(np.abs(off)) > HOLD_MAX * np.min(np.abs(i)):  # a current too small to carry a frame
+            out.append(p)
+            continue
+        delta = np.angle((i - off) / i)
         theta = s.theta_e + delta
         sig = Signals.from_abc(s.v_abc, s.i_abc, theta, frame_speed(theta, s), s.ts, s.pole_pairs)
         out.append(replace(p, sig=sig, meta={**p.meta, "hold_turn_rad": float(np.mean(delta))}))
