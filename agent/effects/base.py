@@ -115,6 +115,9 @@ class Effect:
     direct: Callable[[list], dict | None] = lambda signals: None
     #: what ``direct``'s test is, in words
     direct_test: str = ""
+    #: the records' own reading that refutes the effect whatever a fit makes of it: ``signals -> why``
+    #: (the row is then ``contradicted``, not claimed, and the note says why), or None
+    refutes: Callable[[list], str | None] = lambda signals: None
     _cache: ByIdentity = field(default_factory=lambda: ByIdentity(8), compare=False, repr=False)
 
     def __post_init__(self):

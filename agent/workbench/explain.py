@@ -898,6 +898,9 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
                "effect_size": effect_size(h_ctrl, h, _total(h_ctrl), _total(h)),
                **reported(eid, r, ctx := context(r, own.get(eid, preps), baseline.profile), prior)}
         p_values.append(test_p(row, get_effect(eid).direct(ctx["signals"])))
+        refuted = get_effect(eid).refutes(ctx["signals"])
+        if refuted:
+            row.update(contradicted=True, note="; ".join(filter(None, [row.get("note"), refuted])))
         if not identifiable:
             row["note"] = "; ".join(filter(None, [unidentified_note(eid, how), row.get("note")]))
         elif negligible_as_pinned(eid, path_change(r.values[eid], preps, own[eid]) if eid in own else r.values[eid],
