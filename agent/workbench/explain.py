@@ -898,8 +898,8 @@ def explain(baseline, preps: list[Prepared], candidates=None, progress=None) -> 
                "effect_size": effect_size(h_ctrl, h, _total(h_ctrl), _total(h)),
                **reported(eid, r, ctx := context(r, own.get(eid, preps), baseline.profile), prior)}
         p_values.append(test_p(row, get_effect(eid).direct(ctx["signals"])))
-        refuted = get_effect(eid).refutes(ctx["signals"])
-        if refuted:
+        refuted = (row["explained_fraction"] or 0.0) > 0.0 and get_effect(eid).refutes(ctx["signals"])
+        if refuted:  # only where it explains something: a refutation of nothing says nothing
             row.update(contradicted=True, note="; ".join(filter(None, [row.get("note"), refuted])))
         if not identifiable:
             row["note"] = "; ".join(filter(None, [unidentified_note(eid, how), row.get("note")]))

@@ -217,6 +217,16 @@ def shaft_line(rate: np.ndarray, theta: np.ndarray, sig: Signals) -> np.ndarray:
     f_r): a speed step's corners and a load ripple's speed ripple project onto any frequency, and
     taken out of the speed as a line they left an error at f_r that ``speed_ripple`` took (2 of 31
     family null sets without an encoder, on every set of those drives)."""
+    line, power, near = _shaft_fit(rate, theta, sig)
+    if len(near) < 4 or power < LINE_OVER * float(np.median(near)):
+        return np.zeros_like(rate)
+    return line
+
+
+def _shaft_fit(rate: np.ndarray, theta: np.ndarray, sig: Signals, neighbours=LINE_NEIGHBOURS):
+    """(line (N,) rad/s, its power, its neighbours' powers): the least-squares line of ``rate`` less
+    its :func:`shaft_lowpass` on the shaft angle theta/p, and the same at ``neighbours`` bins of 1 /
+    record length either side (above half of f_r)."""
     high = rate - shaft_lowpass(rate, sig)
     shaft = theta / max(sig.pole_pairs or 1, 1)
     t = np.arange(rate.size) * sig.ts
@@ -229,11 +239,17 @@ def shaft_line(rate: np.ndarray, theta: np.ndarray, sig: Signals) -> np.ndarray:
 
     line, power = fit(shaft)
     span = t[-1] + sig.ts
-    near = [fit(shaft + 2 * np.pi * np.sign(f_r) * k / span * t)[1] for m in LINE_NEIGHBOURS for k in (m, -m)
+    near = [fit(shaft + 2 * np.pi * np.sign(f_r) * k / span * t)[1] for m in neighbours for k in (m, -m)
             if abs(f_r) + k / span > 0.5 * abs(f_r)]
-    if len(near) < 4 or power < LINE_OVER * float(np.median(near)):
-        return np.zeros_like(rate)
-    return line
+    return line, power, near
+
+
+def shaft_ripple(sig: Signals) -> float:
+    """rad/s: the amplitude of the shaft-frequency line in a frame's own rate d theta_e/dt, fitted as
+    :func:`shaft_line` fits it but whether or not the frame's speed leaves it out: the speed ripple at
+    f_r the record carries."""
+    line = _shaft_fit(np.gradient(sig.theta_e) / sig.ts, sig.theta_e, sig, neighbours=())[0]
+    return float(np.sqrt(2.0) * np.std(line))
 
 
 def frame_lowpass(x: np.ndarray, sig: Signals, share: float = FRAME_CUTOFF) -> np.ndarray:
@@ -1239,7 +1255,8 @@ def onto_controller(preps: list[Prepared], t_hold: float, ld: float, lq: float) 
     path's rotation takes: family null drive 20703 (6 pole pairs, 8.3 kHz records, a 5.1 kHz drive)
     claimed a 0.33-sample advance of the voltage at 86 % of the control's error; turned, the control
     fell from 4.5 to 1.3 times its noise floor and the rotation explains 3 %. ``t_hold`` s
-    (:func:`hold_period`), ``ld``, ``lq`` H (the baseline's). A record whose current is too small to
+    (:func:`hold_period`), ``ld``, ``lq`` H (explain's: the records' L_d where they pin it, the baseline's
+    L_q). A record whose current is too small to
     carry a frame (its offset ``HOLD_MAX`` of it or more) is left as it is."""
     out = []
     for p in preps:
