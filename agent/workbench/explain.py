@@ -39,8 +39,8 @@ from agent.errors import InputError
 from agent.evidence import effective_size
 from agent.workbench.excitation import dynamics, no_dynamics_note, unfollowed_note
 from agent.workbench.fitting import (CONFLICT_SD, L_MAX_H, NONLINEAR, UNSEEN, Prepared, Refit, fit_cost, heldout,
-                                     judge_figures, hold_period, moved_path, one_step, onto_controller, onto_rotor,
-                                     refit, with_prior)
+                                     frame_lowpass, hold_offset, hold_period, judge_figures, moved_path, one_step,
+                                     onto_controller, onto_rotor, refit, with_prior)
 
 ALPHA = 0.01  #: family-wise significance level of the test over records
 MIN_RECORDS = 3  #: records needed for the test
@@ -166,20 +166,26 @@ def frame_warnings(profile, preps: list[Prepared], prior: dict) -> list[str]:
     s = profile.sampling
     if ref == "mtpa" or s.current_source != "independent" or s.voltage_hold != "abc":
         return []
-    if hold_period(s) is not None and "Lq" not in prior:
-        return ["records without an encoder angle stay in the current vector's frame, which leads or trails the "
-                "rotor's by the drive's hold (the DAQ's current averages over it, the controller holds its own samples "
-                "on q): turning them needs L_q, which identify did not pin (give nameplate.lq_h)"]
-    if hold_period(s) is not None or s.control_rate_hz:
+    if hold_period(s) is not None:
+        return [] if "Lq" in prior else [
+            "records without an encoder angle stay in the current vector's frame, which leads or trails the rotor's "
+            "by the drive's hold (the DAQ's current averages over it, the controller holds its own samples on q): "
+            "turning them needs L_q, which identify did not pin (give nameplate.lq_h)"]
+    if s.control_rate_hz:  # stated equal to the record's: a DAQ the drive triggers, at its own instants
         return []
     size = ""
     if "Lq" in prior:  # at an update rate equal to the record's, through L_q (L_d <= L_q: at least this)
-        free = [p.sig for p in preps if not p.encoder]
-        turn = [float(np.mean(np.abs(p.meta["hold_turn_rad"]))) for p in onto_controller(
-            [p for p in preps if not p.encoder], free[0].ts, prior["Lq"][0], prior["Lq"][0])]
-        size = (f" (about {max(turn):.2g} rad, {max(turn) / (free[0].ts * float(np.mean(np.abs(free[0].omega_e)))):.2g} "
-                f"samples of omega_e T_s, were the drive to update at the record's rate; it grows with the square of its "
-                f"update period)")
+        lq = prior["Lq"][0]
+        turns = []
+        for p in preps:
+            if not p.encoder:
+                i = frame_lowpass(p.sig.i_dq[0] + 1j * p.sig.i_dq[1], p.sig)
+                off = hold_offset(p.sig, p.sig.ts, lq, lq)
+                turns.append((float(np.mean(np.abs(off / np.maximum(np.abs(i), 1e-12)))),
+                              p.sig.ts * float(np.mean(np.abs(p.sig.omega_e)))))
+        turn, w_ts = max(turns)
+        size = (f" (about {turn:.2g} rad, {turn / w_ts:.2g} samples of omega_e T_s, were the drive to update at the "
+                f"record's rate; it grows with the square of its update period)")
     return ["records without an encoder angle from an independent DAQ are judged in the frame of its current vector, "
             "which averages over the drive's voltage hold, while the controller holds its own samples on q: that frame "
             f"leads or trails the rotor's{size}, and the voltage path's rotation may take it; state the drive's update "
